@@ -1,0 +1,215 @@
+"""The ``ngp-warp`` command: train, eval, render, bench, demo."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+CHECKPOINT = "checkpoint.pt"
+
+
+class UserError(Exception):
+    """A mistake in the command line or its inputs: reported as one line, no traceback."""
+
+
+def _device(name: str | None) -> str:
+    from ngp_warp import _wp
+
+    if name in (None, "auto"):
+        return "cuda" if _wp.cuda_available() else "cpu"
+    if name.startswith("cuda") and not _wp.cuda_available():
+        raise UserError(f"--device {name}: no CUDA GPU usable by torch and Warp on this machine (use --device cpu)")
+    if name != "cpu" and not name.startswith("cuda"):
+        raise UserError(f"--device {name}: expected cpu, cuda or cuda:N")
+    return name
+
+
+def _writable_dir(path: Path) -> Path:
+    """Create ``path`` if needed and prove we can write there, before any long work starts."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / ".ngp-warp-write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"{path}: output folder is not writable ({e.strerror or e})") from None
+    return path
+
+
+def _train_config(args, device: str):
+    from ngp_warp.trainer import TrainConfig
+
+    cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
+    if args.target_samples:
+        cfg.target_samples = args.target_samples
+    return cfg
+
+
+def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
+    from ngp_warp.checkpoint import load_trainer, save_checkpoint
+    from ngp_warp.data import load_scene
+    from ngp_warp.evaluate import evaluate, render_orbit
+    from ngp_warp.trainer import Trainer
+
+    device = _device(args.device)
+    out = _writable_dir(out)
+    ckpt = out / CHECKPOINT
+    if getattr(args, "resume", False):
+        trainer, _ = load_trainer(ckpt, device=device)
+        steps, seconds = args.steps, args.seconds
+        trainer.config.steps, trainer.config.seconds = steps, seconds
+        print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
+    else:
+        scene = load_scene(scene_path, downscale=args.downscale)
+        trainer = Trainer(scene, config or _train_config(args, device), device=device)
+    scene = trainer.scene
+    print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
+          f"{scene.train.width}x{scene.train.height}, device {trainer.device}", file=sys.stderr)
+    if scene.test_is_heldout:
+        print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
+              file=sys.stderr)
+    try:
+        trainer.train(show_progress=not args.quiet)
+    except KeyboardInterrupt:
+        save_checkpoint(trainer, ckpt, scene_path, args.downscale)
+        raise UserError(f"interrupted at step {trainer.step_count}; checkpoint saved to {ckpt} "
+                        f"(continue with --resume)") from None
+    save_checkpoint(trainer, ckpt, scene_path, args.downscale)
+    metrics = evaluate(trainer, out, show_progress=not args.quiet)
+    if not args.no_video:
+        video = render_orbit(trainer, out / "orbit.mp4", n_frames=args.frames, show_progress=not args.quiet)
+        print(f"orbit video: {video}", file=sys.stderr)
+    return metrics
+
+
+def _print_metrics(metrics: dict, out: Path) -> None:
+    print(f"{metrics['test_split']}: PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.4f}  "
+          f"({metrics['n_test_images']} images, {metrics['steps']} steps, "
+          f"{metrics['train_seconds']:.1f} s training on {metrics['device']})")
+    print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
+
+
+def cmd_train(args) -> None:
+    scene = Path(args.scene)
+    metrics = _train_and_report(scene, Path(args.out), args)
+    _print_metrics(metrics, Path(args.out))
+
+
+def cmd_demo(args) -> None:
+    from ngp_warp.scene import write_demo_scene
+    from ngp_warp.trainer import TrainConfig
+
+    out = _writable_dir(Path(args.out))
+    scene_dir = out / "scene"
+    if not (scene_dir / "transforms_train.json").exists():
+        print(f"generating the demo scene in {scene_dir}", file=sys.stderr)
+        write_demo_scene(scene_dir, seed=args.seed)
+    device = _device(args.device)
+    if args.steps is None and args.seconds is None:
+        args.seconds = 150.0 if device == "cpu" else 30.0
+    config = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
+    metrics = _train_and_report(scene_dir, out, args, config=config)
+    _print_metrics(metrics, out)
+
+
+def cmd_eval(args) -> None:
+    from ngp_warp.checkpoint import load_trainer
+    from ngp_warp.evaluate import evaluate
+
+    out = _writable_dir(Path(args.dir))
+    trainer, _ = load_trainer(out / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
+    _print_metrics(evaluate(trainer, out, show_progress=not args.quiet), out)
+
+
+def cmd_render(args) -> None:
+    from ngp_warp.checkpoint import load_trainer
+    from ngp_warp.evaluate import render_orbit
+
+    out = _writable_dir(Path(args.dir))
+    trainer, _ = load_trainer(out / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
+    video = Path(args.video)
+    if not video.is_absolute():
+        video = out / video
+    written = render_orbit(trainer, video, n_frames=args.frames, show_progress=not args.quiet)
+    print(f"wrote {written}")
+
+
+def cmd_bench(args) -> None:
+    from ngp_warp.bench import run_kernel_bench
+
+    run_kernel_bench(_device(args.device), quick=args.quick)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ngp-warp", description="instant-NGP radiance fields on Warp kernels (CPU or CUDA)")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp):
+        sp.add_argument("--device", default="auto", help="cpu, cuda or cuda:N (default: cuda when present)")
+        sp.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    def training(sp):
+        budget = sp.add_mutually_exclusive_group()
+        budget.add_argument("--steps", type=int, help="training steps")
+        budget.add_argument("--seconds", type=float, help="training wall-clock budget in seconds")
+        sp.add_argument("--downscale", type=int, default=1, help="shrink images by this integer factor")
+        sp.add_argument("--seed", type=int, default=0)
+        sp.add_argument("--target-samples", type=int, help="samples per batch (default 2^18 CUDA, 2^14 CPU)")
+        sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
+        sp.add_argument("--frames", type=int, default=60, help="orbit video frames")
+
+    t = sub.add_parser("train", help="train on a scene folder, then evaluate and render")
+    t.add_argument("scene", help="NeRF-synthetic folder or folder with an instant-ngp transforms.json")
+    t.add_argument("--out", required=True, help="output folder")
+    t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    training(t)
+    common(t)
+    t.set_defaults(func=cmd_train)
+
+    d = sub.add_parser("demo", help="generate the built-in procedural scene, train and evaluate on it")
+    d.add_argument("--out", default="ngp-warp-demo", help="output folder (default ./ngp-warp-demo)")
+    training(d)
+    common(d)
+    d.set_defaults(func=cmd_demo)
+
+    e = sub.add_parser("eval", help="evaluate a trained output folder on its test split")
+    e.add_argument("dir")
+    e.add_argument("--scene", help="scene folder, if it moved since training")
+    common(e)
+    e.set_defaults(func=cmd_eval)
+
+    r = sub.add_parser("render", help="render an orbit video from a trained output folder")
+    r.add_argument("dir")
+    r.add_argument("--video", default="orbit.mp4", help="video path (.mp4, or .gif; relative to DIR)")
+    r.add_argument("--frames", type=int, default=60)
+    r.add_argument("--scene", help="scene folder, if it moved since training")
+    common(r)
+    r.set_defaults(func=cmd_render)
+
+    b = sub.add_parser("bench", help="kernel throughput table")
+    b.add_argument("--quick", action="store_true", help="small sizes only")
+    common(b)
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    from ngp_warp.checkpoint import CheckpointError
+    from ngp_warp.data import DataError
+
+    try:
+        args.func(args)
+    except (UserError, DataError, CheckpointError) as e:
+        print(f"ngp-warp: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("ngp-warp: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

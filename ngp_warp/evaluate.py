@@ -1,0 +1,115 @@
+"""Evaluation (PSNR/SSIM on the test split, white background), renders, depth maps, orbit video."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from ngp_warp.atomic import atomic_dir, atomic_write_text
+from ngp_warp.metrics import psnr, ssim
+from ngp_warp.progress import Progress
+from ngp_warp.trainer import Trainer, composite_on
+
+
+def to_uint8(img: torch.Tensor) -> np.ndarray:
+    return (img.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
+    """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8."""
+    d = depth / opacity.clamp_min(1e-6)
+    mask = opacity > 0.5
+    if mask.any():
+        lo, hi = d[mask].min(), d[mask].max()
+        d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
+    return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
+
+
+def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
+    """Render every test view on white, score it, write renders/ depth/ and metrics.json."""
+    split = trainer.scene.test
+    out_dir = Path(out_dir)
+    per_image = []
+    bar = Progress("eval", total=len(split.names), enabled=show_progress)
+    with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
+        for i, name in enumerate(split.names):
+            out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
+                                       distortion=split.distortion[i], background=1.0)
+            gt = composite_on(split.images[i].to(trainer.device), torch.ones(3, device=trainer.device))
+            stem = Path(name).stem
+            p, s = psnr(out["rgb"], gt), ssim(out["rgb"], gt)
+            per_image.append({"image": name, "psnr": p, "ssim": s})
+            iio.imwrite(renders / f"{stem}.png", to_uint8(out["rgb"]))
+            iio.imwrite(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
+            bar.update(i + 1, psnr=f"{p:.2f}")
+        bar.close()
+    metrics = {
+        "psnr": float(np.mean([m["psnr"] for m in per_image])),
+        "ssim": float(np.mean([m["ssim"] for m in per_image])),
+        "train_seconds": trainer.train_seconds,
+        "steps": trainer.step_count,
+        "device": str(trainer.device),
+        "test_split": "held-out training frames" if trainer.scene.test_is_heldout else "test",
+        "n_test_images": len(per_image),
+        "per_image": per_image,
+    }
+    atomic_write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2))
+    return metrics
+
+
+def _rotation(axis: torch.Tensor, angle: float) -> torch.Tensor:
+    """Rodrigues rotation matrix about a unit axis."""
+    k = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return torch.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+def orbit_cameras(c2w: torch.Tensor, center: torch.Tensor, n_frames: int) -> torch.Tensor:
+    """[n_frames, 3, 4] cameras circling ``center`` about the mean camera up axis, starting at the
+    first given camera, looking at the centre (OpenGL convention)."""
+    c2w = c2w.float().cpu()
+    up = c2w[:, :3, 1].mean(0)
+    up = up / up.norm().clamp_min(1e-8)
+    start = c2w[0, :3, 3] - center
+    frames = []
+    for k in range(n_frames):
+        pos = _rotation(up, 2.0 * math.pi * k / n_frames) @ start + center
+        back = (pos - center) / (pos - center).norm()          # camera +z points away from the target
+        right = torch.linalg.cross(up, back)
+        right = right / right.norm().clamp_min(1e-8)
+        cam_up = torch.linalg.cross(back, right)
+        frames.append(torch.stack([right, cam_up, back, pos], dim=1))
+    return torch.stack(frames)
+
+
+def render_orbit(trainer: Trainer, path: Path, n_frames: int = 60, fps: int = 20,
+                 show_progress: bool = True) -> Path:
+    """Render an orbit around the scene to ``path`` (.mp4 through imageio's ffmpeg plugin when
+    installed, otherwise a GIF next to it). Returns the path written."""
+    split = trainer.scene.test
+    center = ((trainer.scene.aabb[:3] + trainer.scene.aabb[3:]) / 2).cpu()
+    cams = orbit_cameras(split.c2w, center, n_frames)
+    bar = Progress("orbit", total=n_frames, enabled=show_progress)
+    frames = []
+    for i, cam in enumerate(cams):
+        out = trainer.render_image(cam, split.intrinsics[0], split.width, split.height, background=1.0)
+        frames.append(to_uint8(out["rgb"]))
+        bar.update(i + 1)
+    bar.close()
+    path = Path(path)
+    if path.suffix.lower() == ".mp4":
+        try:
+            import imageio_ffmpeg  # noqa: F401  (optional: the mp4 writer)
+        except ImportError:
+            path = path.with_suffix(".gif")
+    tmp = path.with_name(path.name + ".partial" + path.suffix)
+    if path.suffix.lower() == ".gif":
+        iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=1000 / fps, loop=0)
+    else:
+        iio.imwrite(tmp, np.stack(frames), extension=".mp4", fps=fps)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,143 @@
+"""The instant-NGP radiance field: hash grid → density MLP, spherical harmonics → colour MLP.
+
+.. math::
+
+    h = \\mathrm{MLP}_\\sigma(\\mathrm{enc}(x)) \\in \\mathbb{R}^{16}, \\qquad
+    \\sigma = \\exp(h_0), \\qquad
+    c = \\mathrm{sigmoid}(\\mathrm{MLP}_c([h, \\mathrm{SH}_4(d)]))
+
+Density depends on position only; colour on position and view direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from ngp_warp.encoding import HashGridEncoding
+
+
+@dataclass
+class FieldConfig:
+    """Sizes of the NGP field (defaults: instant-ngp's NeRF configuration)."""
+
+    n_levels: int = 16
+    n_features_per_level: int = 2
+    log2_hashmap_size: int = 19
+    base_resolution: int = 16
+    finest_resolution: float = 2048.0
+    hidden: int = 64
+    geo_features: int = 16
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp(x) whose gradient is exp(min(x, 15)): keeps early large log-densities from exploding."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(max=15.0))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    """Truncated exponential (instant-ngp's density activation)."""
+    return _TruncExp.apply(x)
+
+
+def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics of degree 4 (bands 0..3, 16 values) of unit directions.
+
+    d: [N, 3] float, unit length. Returns [N, 16] with tiny-cuda-nn's ordering and signs.
+    """
+    x, y, z = d.unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, yz, xz = x * y, y * z, x * z
+    return torch.stack(
+        [
+            torch.full_like(x, 0.28209479177387814),
+            -0.48860251190291987 * y,
+            0.48860251190291987 * z,
+            -0.48860251190291987 * x,
+            1.0925484305920792 * xy,
+            -1.0925484305920792 * yz,
+            0.94617469575755997 * zz - 0.31539156525251999,
+            -1.0925484305920792 * xz,
+            0.54627421529603959 * (xx - yy),
+            0.59004358992664352 * y * (-3.0 * xx + yy),
+            2.8906114426405538 * xy * z,
+            0.45704579946446572 * y * (1.0 - 5.0 * zz),
+            0.3731763325901154 * z * (5.0 * zz - 3.0),
+            0.45704579946446572 * x * (1.0 - 5.0 * zz),
+            1.4453057213202769 * z * (xx - yy),
+            0.59004358992664352 * x * (-xx + 3.0 * yy),
+        ],
+        dim=-1,
+    )
+
+
+def _mlp(sizes: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(a, b, bias=False))
+        if i < len(sizes) - 2:
+            layers.append(nn.ReLU(inplace=True))
+    return nn.Sequential(*layers)
+
+
+class NGPField(nn.Module):
+    """Hash-grid radiance field over an axis-aligned box.
+
+    Args:
+        aabb: [6] float ``(xmin, ymin, zmin, xmax, ymax, zmax)``; positions are mapped to
+            [0, 1]^3 inside it before the hash grid.
+        config: :class:`FieldConfig`.
+    """
+
+    def __init__(self, aabb: torch.Tensor, config: FieldConfig | None = None):
+        super().__init__()
+        cfg = config or FieldConfig()
+        self.config = cfg
+        aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(6)
+        self.register_buffer("aabb", aabb.clone())
+        per_level_scale = (cfg.finest_resolution / cfg.base_resolution) ** (1.0 / max(cfg.n_levels - 1, 1))
+        self.encoding = HashGridEncoding(
+            n_input_dims=3,
+            n_levels=cfg.n_levels,
+            n_features_per_level=cfg.n_features_per_level,
+            log2_hashmap_size=cfg.log2_hashmap_size,
+            base_resolution=cfg.base_resolution,
+            per_level_scale=per_level_scale,
+        )
+        self.density_mlp = _mlp([self.encoding.n_output_dims, cfg.hidden, cfg.geo_features])
+        self.color_mlp = _mlp([cfg.geo_features + 16, cfg.hidden, cfg.hidden, 3])
+
+    def mlp_parameters(self) -> list[nn.Parameter]:
+        """MLP weights (the ones that get weight decay)."""
+        return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters())
+
+    def _geometry(self, positions: torch.Tensor) -> torch.Tensor:
+        lo, hi = self.aabb[:3], self.aabb[3:]
+        x = ((positions - lo) / (hi - lo)).contiguous()
+        return self.density_mlp(self.encoding(x))
+
+    def density(self, positions: torch.Tensor) -> torch.Tensor:
+        """σ at positions [N, 3] float32 → [N] float32 (zero outside the box)."""
+        h = self._geometry(positions)
+        sigma = trunc_exp(h[:, 0].float())
+        inside = ((positions >= self.aabb[:3]) & (positions <= self.aabb[3:])).all(-1)
+        return sigma * inside
+
+    def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(σ [N] float32, rgb [N, 3] float32) at positions [N, 3] seen along unit directions [N, 3]."""
+        h = self._geometry(positions)
+        sigma = trunc_exp(h[:, 0].float())
+        sh = spherical_harmonics_deg4(directions).to(h.dtype)
+        rgb = torch.sigmoid(self.color_mlp(torch.cat([h, sh], dim=-1)).float())
+        return sigma, rgb
