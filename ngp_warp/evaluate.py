@@ -30,23 +30,30 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
 
+def test_renders(trainer: Trainer, every: int = 1):
+    """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th test view,
+    rendered and composited on white."""
+    split = trainer.scene.test
+    white = torch.ones(3, device=trainer.device)
+    for i in range(0, len(split.names), every):
+        out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
+                                   distortion=split.distortion[i], background=1.0)
+        yield split.names[i], out, composite_on(split.images[i].to(trainer.device), white)
+
+
 def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
     """Render every test view on white, score it, write renders/ depth/ and metrics.json."""
-    split = trainer.scene.test
     out_dir = Path(out_dir)
     per_image = []
-    bar = Progress("eval", total=len(split.names), enabled=show_progress)
+    bar = Progress("eval", total=len(trainer.scene.test.names), enabled=show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
-        for i, name in enumerate(split.names):
-            out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
-                                       distortion=split.distortion[i], background=1.0)
-            gt = composite_on(split.images[i].to(trainer.device), torch.ones(3, device=trainer.device))
+        for name, out, gt in test_renders(trainer):
             stem = Path(name).stem
             p, s = psnr(out["rgb"], gt), ssim(out["rgb"], gt)
             per_image.append({"image": name, "psnr": p, "ssim": s})
             iio.imwrite(renders / f"{stem}.png", to_uint8(out["rgb"]))
             iio.imwrite(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
-            bar.update(i + 1, psnr=f"{p:.2f}")
+            bar.update(len(per_image), psnr=f"{p:.2f}")
         bar.close()
     metrics = {
         "psnr": float(np.mean([m["psnr"] for m in per_image])),

@@ -1,0 +1,117 @@
+"""Training speed and quality: test PSNR versus training wall-clock on one scene.
+
+    python benchmarks/bench_train.py ../shared/data/lego_half [--device cuda] [--out bench_train]
+
+Reports test PSNR (all test views, white background) at 5, 15, 30, 60, 120 and 300 s of
+training wall-clock. Evaluation time is excluded: the clock stops while we evaluate.
+Also ms per step, rays and samples per step, peak GPU memory. Writes a JSON and a PNG plot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ngp_warp.data import load_scene
+from ngp_warp.evaluate import test_renders
+from ngp_warp.metrics import psnr
+from ngp_warp.trainer import TrainConfig, Trainer
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent).stdout.strip() or "unknown"
+    except OSError:
+        return "unknown"
+
+
+def _plot(rows: list[dict], path: Path, title: str) -> bool:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot([r["seconds"] for r in rows], [r["psnr"] for r in rows], "o-")
+    ax.set_xscale("log")
+    ax.set_xlabel("training wall-clock (s, evaluation excluded)")
+    ax.set_ylabel("test PSNR (dB)")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    return True
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--checkpoints", default="5,15,30,60,120,300", help="seconds at which to evaluate")
+    ap.add_argument("--test-every", type=int, default=1, help="evaluate every k-th test view (1 = all)")
+    ap.add_argument("--downscale", type=int, default=1)
+    ap.add_argument("--target-samples", type=int)
+    ap.add_argument("--out", default="bench_train")
+    args = ap.parse_args()
+
+    marks = [float(s) for s in args.checkpoints.split(",")]
+    scene = load_scene(args.scene, downscale=args.downscale)
+    cfg = TrainConfig(seconds=marks[-1], target_samples=args.target_samples)
+    trainer = Trainer(scene, cfg, device=args.device)
+    dev = trainer.device
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    rows = []
+    rays, samples = [], []
+    for mark in marks:
+        steps0, t0 = trainer.step_count, trainer.train_seconds
+        while trainer.train_seconds < mark:
+            stats = trainer.step(progress=trainer.train_seconds / marks[-1])
+            rays.append(stats["rays"])
+            samples.append(stats["samples"])
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        ms = 1000 * (trainer.train_seconds - t0) / max(trainer.step_count - steps0, 1)
+        start = time.perf_counter()
+        scores = [psnr(out["rgb"], gt) for _, out, gt in test_renders(trainer, every=args.test_every)]
+        row = {
+            "seconds": mark, "train_seconds": trainer.train_seconds, "steps": trainer.step_count,
+            "psnr": float(np.mean(scores)), "n_test": len(scores), "ms_per_step": ms,
+            "rays_per_step": float(np.mean(rays[-50:])), "samples_per_step": float(np.mean(samples[-50:])),
+            "eval_seconds": time.perf_counter() - start,
+        }
+        rows.append(row)
+        print(f"{mark:6.0f} s  step {row['steps']:6d}  PSNR {row['psnr']:6.2f} dB  {ms:6.2f} ms/step  "
+              f"rays {row['rays_per_step']:8.0f}  samples {row['samples_per_step']:9.0f}", flush=True)
+
+    peak = torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None
+    name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU"
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    result = {"scene": str(args.scene), "device": name, "commit": _commit(), "date": time.strftime("%Y-%m-%d"),
+              "command": " ".join(sys.argv), "peak_gpu_memory_gib": peak, "rows": rows}
+    (out / "bench_train.json").write_text(json.dumps(result, indent=2))
+    plotted = _plot(rows, out / "psnr_vs_time.png", f"{Path(args.scene).name} on {name}")
+    print()
+    print(f"| train s | steps | test PSNR (dB) | ms/step | rays/step | samples/step |   ({name}, commit {result['commit']})")
+    print("| ---: | ---: | ---: | ---: | ---: | ---: |")
+    for r in rows:
+        print(f"| {r['seconds']:.0f} | {r['steps']} | {r['psnr']:.2f} | {r['ms_per_step']:.2f} | "
+              f"{r['rays_per_step']:.0f} | {r['samples_per_step']:.0f} |")
+    if peak is not None:
+        print(f"peak GPU memory {peak:.2f} GiB")
+    print(f"wrote {out / 'bench_train.json'}" + (f" and {out / 'psnr_vs_time.png'}" if plotted else " (no matplotlib: no plot)"))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,40 @@
+import math
+
+import torch
+
+from ngp_warp.field import FieldConfig, NGPField, spherical_harmonics_deg4, trunc_exp
+
+
+def test_spherical_harmonics_are_orthonormal():
+    # Monte Carlo estimate of ∫ Y_i Y_j dω over the sphere = δ_ij.
+    g = torch.Generator().manual_seed(1)
+    d = torch.randn(400_000, 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=-1, keepdim=True)
+    y = spherical_harmonics_deg4(d)
+    gram = 4.0 * math.pi * (y.T @ y) / d.shape[0]
+    assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=0.02)
+
+
+def test_trunc_exp_gradient_is_clamped():
+    x = torch.tensor([0.5, 20.0], requires_grad=True)
+    trunc_exp(x).sum().backward()
+    assert torch.allclose(x.grad, torch.exp(torch.tensor([0.5, 15.0])))
+
+
+def test_field_shapes_and_gradients():
+    cfg = FieldConfig(n_levels=4, log2_hashmap_size=12, finest_resolution=64.0, hidden=16)
+    field = NGPField(torch.tensor([-1.0, -1, -1, 1, 1, 1]), cfg)
+    torch.nn.init.uniform_(field.encoding.params, -1.0, 1.0)
+    x = torch.rand(100, 3) * 2 - 1
+    d = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1)
+    sigma, rgb = field(x, d)
+    assert sigma.shape == (100,) and rgb.shape == (100, 3)
+    assert (sigma > 0).all() and ((rgb > 0) & (rgb < 1)).all()
+    (sigma.sum() + rgb.sum()).backward()
+    assert field.encoding.params.grad.abs().sum() > 0
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in field.mlp_parameters())
+    # Density ignores direction; colour does not.
+    sigma2, rgb2 = field(x, -d)
+    assert torch.equal(sigma, sigma2) and not torch.allclose(rgb, rgb2)
+    # Density is zero outside the box.
+    assert (field.density(torch.full((3, 3), 1.5)) == 0).all()
