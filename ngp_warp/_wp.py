@@ -100,22 +100,26 @@ def _cpu_pool(n: int) -> ThreadPoolExecutor:
     return _pool
 
 
-def launch(kernel, n: int, inputs: list, device: str) -> None:
+def launch(kernel, n: int, inputs: list, device: str, align: int = 1) -> None:
     """Launch ``kernel(first, *inputs)`` over ``n`` items on ``device``.
 
     On CUDA this is one launch on torch's current stream. On the CPU the range is split
-    into up to :func:`cpu_threads` disjoint chunks launched in parallel.
+    into up to :func:`cpu_threads` disjoint chunks launched in parallel; every chunk boundary
+    is a multiple of ``align``. Kernels whose items add to the same memory only within one
+    aligned block of ``align`` items pass it, so that each block stays on one thread (Warp's
+    CPU atomics are plain read-modify-writes).
     """
     if n <= 0:
         return
     if device != "cpu":
         wp.launch(kernel, dim=n, inputs=[0, *inputs], device=device, stream=current_stream(device))
         return
-    n_threads = min(cpu_threads(), max(1, n // _MIN_ITEMS_PER_THREAD))
+    align = max(1, align)
+    n_threads = min(cpu_threads(), max(1, n // _MIN_ITEMS_PER_THREAD), -(-n // align))
     if n_threads == 1:
         wp.launch(kernel, dim=n, inputs=[0, *inputs], device="cpu")
         return
-    bounds = [n * k // n_threads for k in range(n_threads + 1)]
+    bounds = [min(n, -(-(n * k // n_threads) // align) * align) for k in range(n_threads + 1)]
     pool = _cpu_pool(n_threads)
     futures = [
         pool.submit(wp.launch, kernel, dim=hi - lo, inputs=[lo, *inputs], device="cpu")

@@ -68,7 +68,8 @@ class Trainer:
         self.train_split: Split = scene.train.to(self.device)
         aabb = scene.aabb.to(self.device)
         self.field = NGPField(aabb, cfg.field).to(self.device)
-        self.grid = OccupancyGrid(aabb, resolution=cfg.grid_resolution, levels=scene.occupancy_levels).to(self.device)
+        self.grid = OccupancyGrid(scene.occupancy_aabb, resolution=cfg.grid_resolution,
+                                  levels=scene.occupancy_levels).to(self.device)
         extent = (aabb[3:] - aabb[:3]).norm().item()
         self.step_size = extent / cfg.steps_per_diagonal
         self.target_samples = cfg.target_samples or (1 << 18 if self.device.type == "cuda" else 1 << 14)
@@ -114,7 +115,7 @@ class Trainer:
         img = torch.randint(0, s.images.shape[0], (n,), device=dev)
         px = torch.randint(0, s.width, (n,), device=dev)
         py = torch.randint(0, s.height, (n,), device=dev)
-        rays_o, rays_d = generate_rays(s.c2w[img], s.intrinsics[img], s.distortion[img], px, py)
+        rays_o, rays_d = s.rays(img, px, py)
         background = torch.rand(n, 3, device=dev) if s.images.shape[-1] == 4 else torch.ones(n, 3, device=dev)
         target = composite_on(s.images[img, py, px], background)
         return rays_o, rays_d, target, background
@@ -179,7 +180,8 @@ class Trainer:
         n = px.numel()
         c2w = c2w.to(dev).expand(n, 3, 4)
         intr = intrinsics.to(dev).expand(n, 4)
-        dist = None if distortion is None else distortion.to(dev).expand(n, 4)
+        has_dist = distortion is not None and bool((distortion != 0).any())
+        dist = distortion.to(dev).expand(n, 4) if has_dist else None
         bg = torch.full((3,), float(background), device=dev)
         parts = {"rgb": [], "depth": [], "opacity": []}
         for lo in range(0, n, chunk):

@@ -1,0 +1,255 @@
+"""Throughput of the hash-grid encoding: forward, backward and forward+backward.
+
+    python benchmarks/bench_encoding.py --device cuda --sizes 2^16,2^18,2^20,2^21,2^22
+    python benchmarks/bench_encoding.py --device cuda --sizes 2^21 --variants default g1 g8 nopair fp16
+    python benchmarks/bench_encoding.py --device cpu --sizes 2^12,2^14 --repeats 3
+
+Default configuration: the NeRF one (D=3, L=16, F=2, T=2^19, base 16, per-level scale 2),
+random points in the unit cube (the worst case for the caches: real NeRF batches are
+spatially coherent). Columns, per size and variant, in million points per second:
+
+* ``fwd``: forward only (``torch.no_grad``);
+* ``bwd``: backward to the table only (``torch.autograd.grad`` w.r.t. ``params``);
+* ``f+b``: forward then that backward;
+* ``bwdx``: backward to the input only (with ``--with-dx``);
+* ``GB/s``: effective bandwidth of fwd / bwd, counting the points read once, the output (or
+  its gradient) once and every corner access as ``F*4`` bytes (the gathers of the forward, the
+  atomic additions of the backward): ``N*(D*4 + L*F*4 + L*2^D*F*4)`` bytes;
+* ``ref`` / ``x``: the pure-torch reference (``ngp_warp/_reference/encoding.py``) in float32 on
+  the same device, same run, and the speed-up of the Warp kernels over it.
+
+Times are medians over ``--repeats`` calls after warm-up: CUDA events around each call on a
+GPU, ``perf_counter`` on the CPU. Variants (``--variants``; tokens joined by ``+``) set the
+CUDA scheduling knobs of ``HashGridEncoding``: ``gN`` levels per thread, ``pair`` / ``nopair``
+x-pair merged accesses, ``gxN`` levels per input-gradient thread (``gx0``: all),
+``fp16`` half-precision table-gradient accumulation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from ngp_warp import HashGridEncoding  # noqa: E402
+from ngp_warp._reference.encoding import encode_like  # noqa: E402
+
+
+def parse_sizes(text: str) -> list[int]:
+    sizes = []
+    for tok in text.split(","):
+        tok = tok.strip()
+        if not tok:
+            continue
+        sizes.append(2 ** int(tok[2:]) if tok.startswith("2^") else int(tok))
+    return sizes
+
+
+def apply_variant(enc: HashGridEncoding, variant: str) -> None:
+    enc.grad_dtype = torch.float32
+    if variant == "default":
+        return
+    for tok in variant.split("+"):
+        if tok == "pair":
+            enc.cuda_paired = True
+        elif tok == "nopair":
+            enc.cuda_paired = False
+        elif tok == "fp16":
+            enc.grad_dtype = torch.float16
+        elif tok.startswith("gx"):
+            enc.cuda_dx_levels_per_thread = int(tok[2:])
+        elif tok.startswith("g"):
+            enc.cuda_levels_per_thread = int(tok[1:])
+        else:
+            raise SystemExit(f"unknown variant token {tok!r}")
+
+
+def timer(device: torch.device, fn, repeats: int, warmup: int) -> float:
+    """Median seconds of one call of ``fn``."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        for _ in range(repeats):
+            start = torch.cuda.Event(enable_timing=True)
+            end = torch.cuda.Event(enable_timing=True)
+            start.record()
+            fn()
+            end.record()
+            end.synchronize()
+            times.append(start.elapsed_time(end) * 1e-3)
+    else:
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def measure(enc, encode, params, n: int, device, repeats: int, warmup: int, with_dx: bool) -> dict:
+    """Times of fwd / bwd / f+b (and bwdx) for ``encode(x, params)`` on two alternating inputs."""
+    D = enc.n_input_dims
+    xs = [torch.rand(n, D, device=device) for _ in range(2)]
+    g = torch.randn(n, enc.n_output_dims, device=device)
+    state = {"i": 0}
+
+    def next_x():
+        state["i"] ^= 1
+        return xs[state["i"]]
+
+    def fwd():
+        with torch.no_grad():
+            encode(next_x(), params)
+
+    ys = [encode(x, params) for x in xs]
+
+    def bwd():
+        state["i"] ^= 1
+        torch.autograd.grad(ys[state["i"]], params, g, retain_graph=True)
+
+    def fwd_bwd():
+        torch.autograd.grad(encode(next_x(), params), params, g)
+
+    out = {
+        "fwd_s": timer(device, fwd, repeats, warmup),
+        "bwd_s": timer(device, bwd, repeats, warmup),
+        "fb_s": timer(device, fwd_bwd, repeats, warmup),
+    }
+    del ys
+    if with_dx:
+        xg = [x.clone().requires_grad_() for x in xs]
+        ys = [encode(x, params.detach()) for x in xg]
+
+        def bwdx():
+            state["i"] ^= 1
+            torch.autograd.grad(ys[state["i"]], xg[state["i"]], g, retain_graph=True)
+
+        out["bwdx_s"] = timer(device, bwdx, repeats, warmup)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--sizes", default=None, help="comma-separated N, e.g. 2^16,2^21 or 65536")
+    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--variants", nargs="+", default=["default"])
+    ap.add_argument("--dims", type=int, default=3)
+    ap.add_argument("--levels", type=int, default=16)
+    ap.add_argument("--features", type=int, default=2)
+    ap.add_argument("--log2-hashmap-size", type=int, default=19)
+    ap.add_argument("--base-resolution", type=int, default=16)
+    ap.add_argument("--per-level-scale", type=float, default=2.0)
+    ap.add_argument("--interpolation", default="linear")
+    ap.add_argument("--with-dx", action="store_true", help="also time the input-gradient backward")
+    ap.add_argument("--no-reference", action="store_true", help="skip the pure-torch reference")
+    ap.add_argument("--reference-max-size", type=int, default=2**22)
+    ap.add_argument("--json", default=None, help="write all numbers to this file")
+    args = ap.parse_args(argv)
+
+    device = torch.device(args.device)
+    is_cuda = device.type == "cuda"
+    sizes = parse_sizes(args.sizes) if args.sizes else ([2**k for k in (16, 18, 20, 21, 22)] if is_cuda else [2**12, 2**14])
+    repeats = args.repeats or (20 if is_cuda else 3)
+    enc = HashGridEncoding(
+        args.dims,
+        args.levels,
+        args.features,
+        args.log2_hashmap_size,
+        args.base_resolution,
+        args.per_level_scale,
+        args.interpolation,
+        device=device,
+    )
+    D, L, F = enc.n_input_dims, enc.n_levels, enc.n_features_per_level
+    bytes_per_point = D * 4 + L * F * 4 + L * (1 << D) * F * 4
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    except OSError:
+        commit = ""
+    header = {
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "commit": commit,
+        "device": torch.cuda.get_device_name(device) if is_cuda else platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+        "warp": __import__("warp").__version__,
+        "config": {
+            "D": D,
+            "L": L,
+            "F": F,
+            "log2T": enc.log2_hashmap_size,
+            "base": enc.base_resolution,
+            "per_level_scale": enc.per_level_scale,
+            "interpolation": enc.interpolation,
+        },
+        "command": " ".join(sys.argv),
+    }
+    print(f"# {header['device']}  torch {header['torch']}  warp {header['warp']}  commit {commit}  {header['date']}")
+    print(f"# D={D} L={L} F={F} T=2^{enc.log2_hashmap_size} n_params={enc.n_params}  repeats={repeats}")
+
+    rows = []
+    ref_cache = {}
+    for n in sizes:
+        for variant in args.variants:
+            apply_variant(enc, variant)
+            t = measure(enc, lambda x, p: enc(x), enc.params, n, device, repeats, args.warmup, args.with_dx)
+            row = {"n": n, "variant": variant, **t}
+            if not args.no_reference and n <= args.reference_max_size:
+                if n not in ref_cache:
+                    ref_params = enc.params.detach().clone().requires_grad_()
+                    ref_cache[n] = measure(
+                        enc,
+                        lambda x, p: encode_like(enc, x, p, dtype=torch.float32),
+                        ref_params,
+                        n,
+                        device,
+                        max(3, repeats // 4),
+                        1,
+                        False,
+                    )
+                row.update({f"ref_{k}": v for k, v in ref_cache[n].items()})
+            rows.append(row)
+
+    def mpts(n, s):
+        return n / s * 1e-6
+
+    cols = ["N", "variant", "fwd", "bwd", "f+b"] + (["bwdx"] if args.with_dx else []) + ["fwd GB/s", "bwd GB/s"]
+    if not args.no_reference:
+        cols += ["ref fwd", "ref bwd", "ref f+b", "x fwd", "x bwd", "x f+b"]
+    print("# Mpoints/s (GB/s effective; x = speed-up over the pure-torch reference)")
+    print(" | ".join(f"{c:>10}" for c in cols))
+    for r in rows:
+        n = r["n"]
+        vals = [f"2^{n.bit_length() - 1}" if n & (n - 1) == 0 else str(n), r["variant"]]
+        vals += [f"{mpts(n, r[k]):.1f}" for k in ("fwd_s", "bwd_s", "fb_s")]
+        if args.with_dx:
+            vals.append(f"{mpts(n, r['bwdx_s']):.1f}")
+        vals += [f"{n * bytes_per_point / r[k] * 1e-9:.0f}" for k in ("fwd_s", "bwd_s")]
+        if not args.no_reference:
+            if "ref_fwd_s" in r:
+                vals += [f"{mpts(n, r['ref_' + k]):.2f}" for k in ("fwd_s", "bwd_s", "fb_s")]
+                vals += [f"{r['ref_' + k] / r[k]:.1f}" for k in ("fwd_s", "bwd_s", "fb_s")]
+            else:
+                vals += ["-"] * 6
+        print(" | ".join(f"{v:>10}" for v in vals))
+        r.update({f"{k[:-2]}_mpts": mpts(n, r[k]) for k in list(r) if k.endswith("_s")})
+    if args.json:
+        Path(args.json).write_text(json.dumps({**header, "bytes_per_point": bytes_per_point, "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

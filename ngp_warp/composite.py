@@ -1,0 +1,82 @@
+"""Differentiable front-to-back compositing of packed samples (Warp forward and backward).
+
+For the samples :math:`i` of one ray, front to back,
+
+.. math::
+
+    \\alpha_i = 1 - e^{-\\sigma_i (t^{end}_i - t^{start}_i)}, \\quad
+    T_i = \\prod_{j<i} (1 - \\alpha_j), \\quad
+    w_i = T_i \\alpha_i \\;[T_i \\ge \\epsilon],
+
+    C = \\sum_i w_i c_i, \\quad O = \\sum_i w_i, \\quad
+    D = \\sum_i w_i \\frac{t^{start}_i + t^{end}_i}{2}.
+
+Gradients flow to :math:`\\sigma` and :math:`c` (not to the intervals) through a hand-written
+backward kernel. The autograd function itself lives in :mod:`ngp_warp.render`: this module's
+name doubles as the package's ``composite`` export, so library code never imports it.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ngp_warp import _wp
+from ngp_warp.render import composite_packed, ray_offsets_from_indices
+
+
+def composite(
+    sigmas: torch.Tensor,
+    rgbs: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    ray_indices: torch.Tensor,
+    n_rays: int,
+    early_stop_eps: float = 0.0,
+    return_weights: bool = False,
+):
+    """Composite packed samples into per-ray colour, opacity and depth (see the module equations).
+
+    Args:
+        sigmas: [S] float32 densities σ ≥ 0. rgbs: [S, 3] float32 colours.
+        t_starts, t_ends: [S] float32 sample intervals (no gradient).
+        ray_indices: [S] int64 or int32, the ray of each sample, **sorted** (samples of a ray
+            contiguous and front to back), each in ``[0, n_rays)``; not checked on the device.
+        n_rays: number of rays (rays without samples get zeros).
+        early_stop_eps: samples with transmittance :math:`T_i < \\epsilon` contribute nothing.
+        return_weights: also return the per-sample weights :math:`w_i` ([S] float32,
+            differentiable).
+
+    Returns:
+        ``(rgb [n_rays, 3], opacity [n_rays], depth [n_rays])`` float32, plus ``weights [S]`` when
+        ``return_weights``. Depth is not normalised by opacity.
+    """
+    if not isinstance(sigmas, torch.Tensor) or sigmas.dim() != 1:
+        raise ValueError(f"sigmas must be a [S] tensor, got {getattr(sigmas, 'shape', type(sigmas).__name__)}")
+    n_samples = sigmas.shape[0]
+    expected = {"sigmas": (sigmas, (n_samples,)), "rgbs": (rgbs, (n_samples, 3)),
+                "t_starts": (t_starts, (n_samples,)), "t_ends": (t_ends, (n_samples,))}
+    for name, (t, shape) in expected.items():
+        if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape:
+            raise ValueError(f"{name} must have shape {list(shape)}, got {getattr(t, 'shape', type(t).__name__)}")
+        if t.dtype != torch.float32:
+            raise ValueError(f"{name} must be float32, got {t.dtype}")
+        if t.device != sigmas.device:
+            raise ValueError(f"{name} is on {t.device} but sigmas on {sigmas.device}")
+    if not isinstance(ray_indices, torch.Tensor) or tuple(ray_indices.shape) != (n_samples,):
+        raise ValueError(f"ray_indices must have shape [{n_samples}], got {getattr(ray_indices, 'shape', ray_indices)}")
+    if ray_indices.dtype not in (torch.int64, torch.int32) or ray_indices.device != sigmas.device:
+        raise ValueError(f"ray_indices must be int64/int32 on {sigmas.device}, got {ray_indices.dtype} on {ray_indices.device}")
+    if not isinstance(n_rays, int) or n_rays < 0 or (n_rays == 0 and n_samples > 0):
+        raise ValueError(f"n_rays must be a non-negative int (positive when there are samples), got {n_rays!r}")
+    if early_stop_eps < 0:
+        raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
+    _wp.device_of(sigmas)
+    if n_samples == 0:
+        dev = sigmas.device
+        out = (torch.zeros(n_rays, 3, device=dev), torch.zeros(n_rays, device=dev), torch.zeros(n_rays, device=dev))
+        return (*out, torch.zeros(0, device=dev)) if return_weights else out
+    offsets = ray_offsets_from_indices(ray_indices.to(torch.int64).contiguous(), n_rays)
+    rgb, opacity, depth, weights = composite_packed(
+        sigmas.contiguous(), rgbs.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets, early_stop_eps
+    )
+    return (rgb, opacity, depth, weights) if return_weights else (rgb, opacity, depth)

@@ -1,0 +1,377 @@
+"""Multiresolution hash-grid encoding (instant-NGP), with tiny-cuda-nn's ``HashGrid`` semantics.
+
+The positional-encoding answer to spectral bias, made explicit: instead of feeding the MLP
+sinusoids of the position, every position looks up learned features on ``L`` grids of growing
+resolution. Coarse grids fit their table and are indexed densely; fine grids are folded into a
+table of ``2^log2_hashmap_size`` entries by a spatial hash, so that the many cells of empty
+space share slots with the few that matter (collisions are resolved by the gradient: the
+surfaces' cells dominate it). Forward and backward are Warp kernels (``kernels/hashgrid.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch.autograd.function import once_differentiable
+
+from ngp_warp import _wp
+from ngp_warp.kernels import hashgrid as K
+
+_MAX_ITEMS = 2**31 - 1  # kernels index the [N, L] output with int32
+
+
+@dataclass(frozen=True)
+class LevelTable:
+    """Per-level constants of a hash grid, computed exactly as tiny-cuda-nn does (float32)."""
+
+    scales: tuple[float, ...]  # exp2(l * log2(per_level_scale)) * base - 1 (float32 values)
+    resolutions: tuple[int, ...]  # ceil(scale) + 1
+    sizes: tuple[int, ...]  # entries in the level: min(next_multiple(res^D, 8), 2^log2T)
+    offsets: tuple[int, ...]  # L + 1 entry offsets (tcnn's offset table)
+    hashed: tuple[bool, ...]  # True where res^D does not fit the level (index by hash)
+
+
+def level_table(
+    n_input_dims: int, n_levels: int, log2_hashmap_size: int, base_resolution: int, per_level_scale: float
+) -> LevelTable:
+    """The constants tiny-cuda-nn's grid encoding derives from its hyper-parameters.
+
+    ``scale = exp2f(l * log2f(per_level_scale)) * base_resolution - 1`` in float32 (the product
+    and the subtraction rounded once, as nvcc contracts them into an FMA), ``resolution =
+    ceil(scale) + 1``, ``params_in_level = min(next_multiple(min(res^D, UINT32_MAX/2), 8),
+    2^log2_hashmap_size)``. A level is hashed when tcnn's index loop (``stride *= res`` in
+    uint32 while ``stride <= params_in_level``) ends with ``stride > params_in_level``.
+    """
+    log2_scale = np.log2(np.float32(per_level_scale))
+    max_params = 0xFFFFFFFF // 2
+    scales, resolutions, sizes, offsets, hashed = [], [], [], [0], []
+    for level in range(n_levels):
+        e = np.exp2(np.float32(level) * log2_scale, dtype=np.float32)
+        scale = np.float32(float(e) * float(base_resolution) - 1.0)
+        res = int(math.ceil(float(scale))) + 1
+        dense = res**n_input_dims
+        size = max_params if dense > 2**31 else dense
+        size = min(-(-size // 8) * 8, 1 << log2_hashmap_size)
+        stride = 1
+        for _ in range(n_input_dims):
+            if stride > size:
+                break
+            stride = (stride * res) & 0xFFFFFFFF
+        scales.append(float(scale))
+        resolutions.append(res)
+        sizes.append(size)
+        offsets.append(offsets[-1] + size)
+        hashed.append(size < stride)
+    return LevelTable(tuple(scales), tuple(resolutions), tuple(sizes), tuple(offsets), tuple(hashed))
+
+
+class _HashGridFunction(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, params, enc):
+        ctx.enc = enc
+        ctx.save_for_backward(x, params)
+        return enc._encode(x, params)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out):
+        x, params = ctx.saved_tensors
+        enc = ctx.enc
+        need_x, need_params = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        grad_out = _aligned(grad_out.contiguous())
+        grad_x = enc._grad_x(x, params, grad_out) if need_x else None
+        grad_params = enc._grad_params(x, grad_out) if need_params else None
+        return grad_x, grad_params, None
+
+
+def _aligned(t: torch.Tensor) -> torch.Tensor:
+    """``t`` itself when 16-byte aligned (the kernels use vector loads), else an aligned copy."""
+    return t if t.data_ptr() % 16 == 0 else t.clone()
+
+
+class HashGridEncoding(torch.nn.Module):
+    """Multiresolution hash-grid encoding of points in ``[0, 1]^D``, as tiny-cuda-nn's ``HashGrid``.
+
+    Encodes ``x`` ``[N, D]`` float32 into ``[N, L*F]`` float32, level-major (level ``l``'s
+    ``F`` features at columns ``l*F ... l*F + F - 1``). The semantics and the parameter
+    layout match tiny-cuda-nn bit for bit in the index computation, so a tcnn ``HashGrid``'s
+    ``params`` can be loaded here (``load_state_dict``) and the other way round:
+
+    * level ``l`` has ``scale = exp2(l*log2(per_level_scale))*base_resolution - 1``, grid
+      resolution ``ceil(scale) + 1`` and ``min(next_multiple(res^D, 8), 2^log2_hashmap_size)``
+      entries; ``params`` holds the levels one after the other, ``F`` floats per entry;
+    * a point sits at ``pos = scale*x + 0.5`` (one fused multiply-add), in the cell
+      ``floor(pos)``, with d-linear weights of ``pos - floor(pos)`` (or their smoothstep);
+    * a corner's entry is ``x + y*res + z*res^2`` where the level's dense grid fits its
+      table, else ``(x*1 ^ y*2654435761 ^ z*805459861) mod entries`` in uint32 arithmetic.
+
+    Inputs outside ``[0, 1]`` are *not* clamped, as in tcnn: their cell coordinates wrap
+    around in uint32 and land on some (hashed or folded) entry; map your scene into the unit
+    cube first.
+
+    Args:
+        n_input_dims: D, 2 or 3.
+        n_levels: L.
+        n_features_per_level: F, 1, 2, 4 or 8.
+        log2_hashmap_size: log2 of the largest number of entries per level (1 ... 30).
+        base_resolution: the coarsest grid's resolution parameter.
+        per_level_scale: growth factor of the scale from one level to the next.
+        interpolation: ``"linear"`` or ``"smoothstep"`` (weights ``w^2 (3 - 2w)``, whose
+            derivative vanishes on cell faces; handy for second-order smoothness).
+        desired_resolution: if given, the finest level's resolution: ``per_level_scale`` becomes
+            ``exp((ln(desired_resolution) - ln(base_resolution)) / (L - 1))`` (and must be left
+            at its default).
+        grad_dtype: ``torch.float32`` (default, exact up to the order of float additions) or
+            ``torch.float16``: the table gradient of the hashed levels is accumulated in half
+            precision (packed half2 atomics, half the atomic traffic) and converted to float32
+            at the end. Lossy: each entry's sum is rounded to 11 significant bits at every
+            addition. The dense coarse levels, whose entries collect many more additions, stay
+            in float32.
+        device: where ``params`` lives initially (``.to()`` moves it as usual).
+
+    Attributes:
+        params: the flat ``[n_params]`` float32 table, initialised ``U(-1e-4, 1e-4)``.
+        n_params, n_output_dims (``L*F``), n_input_dims, n_levels, n_features_per_level,
+        log2_hashmap_size, base_resolution, per_level_scale, interpolation, grad_dtype.
+        scales, resolutions, offsets (``L + 1`` entry offsets, tcnn's offset table), sizes
+        (entries per level), hashed (per-level bool): see :func:`level_table`.
+
+    The forward and backward run on the device of ``x`` (which must be that of ``params``), on
+    torch's current stream, without host synchronisation; the backward computes the input
+    gradient (``[N, D]``, e.g. for pose refinement or SDF normals) and the table gradient, each
+    only when autograd needs it. The backward itself is not differentiable (no second order).
+
+    CUDA scheduling (see ``kernels/hashgrid.py``) is tunable through the attributes
+    ``cuda_levels_per_thread`` (levels per forward/backward item, default ``8 // F``),
+    ``cuda_paired`` (x-pair merged accesses for ``F <= 2``) and ``cuda_dx_levels_per_thread``
+    (levels per input-gradient item; 0: all levels in one item, no atomics).
+    """
+
+    def __init__(
+        self,
+        n_input_dims: int = 3,
+        n_levels: int = 16,
+        n_features_per_level: int = 2,
+        log2_hashmap_size: int = 19,
+        base_resolution: int = 16,
+        per_level_scale: float = 2.0,
+        interpolation: str = "linear",
+        *,
+        desired_resolution: float | None = None,
+        grad_dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ):
+        super().__init__()
+        if n_input_dims not in (2, 3):
+            raise ValueError(f"n_input_dims must be 2 or 3, got {n_input_dims}")
+        if n_features_per_level not in (1, 2, 4, 8):
+            raise ValueError(f"n_features_per_level must be 1, 2, 4 or 8, got {n_features_per_level}")
+        if not (isinstance(n_levels, int) and n_levels >= 1):
+            raise ValueError(f"n_levels must be a positive int, got {n_levels!r}")
+        if not (isinstance(log2_hashmap_size, int) and 1 <= log2_hashmap_size <= 30):
+            raise ValueError(f"log2_hashmap_size must be an int in [1, 30], got {log2_hashmap_size!r}")
+        if not base_resolution >= 1:
+            raise ValueError(f"base_resolution must be >= 1, got {base_resolution!r}")
+        interpolation = str(interpolation).lower()
+        if interpolation not in K.INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {K.INTERPOLATIONS}, got {interpolation!r}")
+        if desired_resolution is not None:
+            if per_level_scale != 2.0:
+                raise ValueError("give either per_level_scale or desired_resolution, not both")
+            if not desired_resolution >= 1:
+                raise ValueError(f"desired_resolution must be >= 1, got {desired_resolution!r}")
+            per_level_scale = (
+                math.exp((math.log(desired_resolution) - math.log(base_resolution)) / (n_levels - 1))
+                if n_levels > 1
+                else 1.0
+            )
+        if not per_level_scale > 0:
+            raise ValueError(f"per_level_scale must be > 0, got {per_level_scale!r}")
+        if grad_dtype not in (torch.float32, torch.float16):
+            raise ValueError(f"grad_dtype must be torch.float32 or torch.float16, got {grad_dtype}")
+
+        self.n_input_dims = n_input_dims
+        self.n_levels = n_levels
+        self.n_features_per_level = n_features_per_level
+        self.log2_hashmap_size = log2_hashmap_size
+        self.base_resolution = base_resolution
+        self.per_level_scale = float(per_level_scale)
+        self.interpolation = interpolation
+        self.grad_dtype = grad_dtype
+        self.n_output_dims = n_levels * n_features_per_level
+
+        table = level_table(n_input_dims, n_levels, log2_hashmap_size, base_resolution, self.per_level_scale)
+        if table.offsets[-1] * n_features_per_level > _MAX_ITEMS:
+            raise ValueError("the encoding's table would exceed 2^31 floats; lower log2_hashmap_size or n_levels")
+        for size, hashed in zip(table.sizes, table.hashed):
+            assert not hashed or size & (size - 1) == 0, "hashed levels have 2^log2_hashmap_size entries"
+        self.scales = table.scales
+        self.resolutions = table.resolutions
+        self.sizes = table.sizes
+        self.offsets = table.offsets
+        self.hashed = table.hashed
+        self.n_params = table.offsets[-1] * n_features_per_level
+        # first level accumulated in float16 when grad_dtype is float16: hashed levels only
+        self._half_from = next((i for i, h in enumerate(table.hashed) if h), n_levels)
+
+        self.cuda_levels_per_thread = max(1, min(n_levels, 8 // n_features_per_level))
+        self.cuda_paired = n_features_per_level <= 2
+        self.cuda_dx_levels_per_thread = max(1, min(n_levels, 8 // n_features_per_level))
+
+        self.params = torch.nn.Parameter(
+            torch.empty(self.n_params, dtype=torch.float32, device=device).uniform_(-1e-4, 1e-4)
+        )
+        meta = [[r, o, s, int(h)] for r, o, s, h in zip(table.resolutions, table.offsets, table.sizes, table.hashed)]
+        self.register_buffer("_scales", torch.tensor(table.scales, dtype=torch.float32, device=device), persistent=False)
+        self.register_buffer("_meta", torch.tensor(meta, dtype=torch.int32, device=device), persistent=False)
+        self._wp_meta: dict = {}
+
+    @classmethod
+    def from_finest_resolution(
+        cls, finest_resolution: float, n_levels: int = 16, base_resolution: int = 16, **kwargs
+    ) -> HashGridEncoding:
+        """Encoding whose finest level has ``finest_resolution`` (sets ``per_level_scale``)."""
+        return cls(n_levels=n_levels, base_resolution=base_resolution, desired_resolution=finest_resolution, **kwargs)
+
+    def extra_repr(self) -> str:
+        return (
+            f"n_input_dims={self.n_input_dims}, n_levels={self.n_levels}, "
+            f"n_features_per_level={self.n_features_per_level}, log2_hashmap_size={self.log2_hashmap_size}, "
+            f"base_resolution={self.base_resolution}, per_level_scale={self.per_level_scale:.6g}, "
+            f"interpolation={self.interpolation!r}, n_params={self.n_params}"
+        )
+
+    # -- forward ---------------------------------------------------------------------------
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Encode ``x`` ``[N, D]`` float32 (on the device of ``params``) into ``[N, L*F]`` float32."""
+        if not isinstance(x, torch.Tensor):
+            raise ValueError(f"HashGridEncoding expects a torch.Tensor, got {type(x).__name__}")
+        if x.dim() != 2 or x.shape[1] != self.n_input_dims:
+            raise ValueError(f"HashGridEncoding expects x of shape [N, {self.n_input_dims}], got {list(x.shape)}")
+        if x.dtype != torch.float32:
+            raise ValueError(f"HashGridEncoding expects float32 positions, got {x.dtype}")
+        if x.device != self.params.device:
+            raise ValueError(f"x is on {x.device} but the encoding's params are on {self.params.device}")
+        if x.shape[0] * self.n_levels > _MAX_ITEMS:
+            raise ValueError(f"at most {_MAX_ITEMS // self.n_levels} points per call, got {x.shape[0]}")
+        _wp.device_of(x)  # CPU or CUDA only
+        return _HashGridFunction.apply(x.contiguous(), self.params, self)
+
+    # -- kernel plumbing -------------------------------------------------------------------
+
+    def _kernels(self, device: str) -> K.Kernels:
+        half = self.grad_dtype == torch.float16
+        D, F, interp = self.n_input_dims, self.n_features_per_level, self.interpolation
+        if device == "cpu":
+            config = K.KernelConfig(D, F, interp, 1, False, half, 0)
+        else:
+            config = K.KernelConfig(
+                D,
+                F,
+                interp,
+                int(self.cuda_levels_per_thread),
+                bool(self.cuda_paired),
+                half,
+                int(self.cuda_dx_levels_per_thread),
+            )
+        return K.get_kernels(config)
+
+    def _level_arrays(self):
+        """Warp views of the per-level constants (cached per buffer address)."""
+        key = (self._scales.data_ptr(), self._meta.data_ptr())
+        arrays = self._wp_meta.get(key)
+        if arrays is None:
+            arrays = (_wp.to_wp(self._scales), _wp.to_wp(self._meta, dtype=K.wp.vec4i))
+            self._wp_meta = {key: arrays}
+        return arrays
+
+    def _entries(self, t: torch.Tensor, dtype=None):
+        """Warp view of a flat table-shaped tensor as F-vectors."""
+        F = self.n_features_per_level
+        if F == 1:
+            return _wp.to_wp(t.reshape(-1))
+        vec = dtype if dtype is not None else K._vec(F)
+        return _wp.to_wp(t.reshape(-1, F), dtype=vec)
+
+    def _encode(self, x: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+        n, L, F = x.shape[0], self.n_levels, self.n_features_per_level
+        out = torch.empty((n, L * F), dtype=torch.float32, device=x.device)
+        if n == 0:
+            return out
+        device = _wp.device_of(x)
+        k = self._kernels(device)
+        G = k.config.levels_per_thread
+        scales, meta = self._level_arrays()
+        _wp.launch(
+            k.forward,
+            -(-L // G) * n,
+            [n, L, _wp.to_wp(x.reshape(-1)), self._entries(_aligned(params.detach())), scales, meta, self._entries(out)],
+            device,
+        )
+        return out
+
+    def _grad_params(self, x: torch.Tensor, grad_out: torch.Tensor) -> torch.Tensor:
+        n, L, F = x.shape[0], self.n_levels, self.n_features_per_level
+        grad = torch.zeros(self.n_params, dtype=torch.float32, device=x.device)
+        if n == 0:
+            return grad
+        device = _wp.device_of(x)
+        k = self._kernels(device)
+        G = k.config.levels_per_thread
+        scales, meta = self._level_arrays()
+        half = None
+        half_from, half_base = L, self.offsets[-1]
+        if k.config.half_grad and self._half_from < L:
+            half_from, half_base = self._half_from, self.offsets[self._half_from]
+            half = torch.zeros((self.offsets[-1] - half_base) * F, dtype=torch.float16, device=x.device)
+        _wp.launch(
+            k.backward_params,
+            -(-L // G) * n,
+            [
+                n,
+                L,
+                _wp.to_wp(x.reshape(-1)),
+                scales,
+                meta,
+                self._entries(grad_out),
+                self._entries(grad),
+                None if half is None else self._entries(half, K._hvec(F)),
+                half_from,
+                half_base,
+            ],
+            device,
+            align=n,  # one block of n items = one level group (disjoint table regions)
+        )
+        if half is not None:
+            grad[half_base * F :].copy_(half)
+        return grad
+
+    def _grad_x(self, x: torch.Tensor, params: torch.Tensor, grad_out: torch.Tensor) -> torch.Tensor:
+        n, L, D = x.shape[0], self.n_levels, self.n_input_dims
+        device = _wp.device_of(x)
+        k = self._kernels(device)
+        GX = k.config.dx_levels_per_thread
+        grad_x = (torch.empty if GX == 0 else torch.zeros)((n, D), dtype=torch.float32, device=x.device)
+        if n == 0:
+            return grad_x
+        scales, meta = self._level_arrays()
+        _wp.launch(
+            k.backward_x,
+            n if GX == 0 else -(-L // GX) * n,
+            [
+                n,
+                L,
+                _wp.to_wp(x.reshape(-1)),
+                self._entries(_aligned(params.detach())),
+                scales,
+                meta,
+                self._entries(grad_out),
+                _wp.to_wp(grad_x.reshape(-1)),
+            ],
+            device,
+        )
+        return grad_x

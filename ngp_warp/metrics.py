@@ -1,0 +1,84 @@
+"""Image quality metrics of the NeRF papers: PSNR and SSIM on [0, 1] images (evaluation only)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+
+
+def _check(pred: torch.Tensor, gt: torch.Tensor, min_size: int = 1) -> None:
+    for name, t in (("pred", pred), ("gt", gt)):
+        if not isinstance(t, torch.Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+        if t.dim() != 3:
+            raise ValueError(f"{name} must have shape [H, W, C], got {list(t.shape)}")
+        if not t.is_floating_point():
+            raise ValueError(f"{name} must be a float image in [0, 1], got {t.dtype}")
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred and gt differ in shape: {list(pred.shape)} vs {list(gt.shape)}")
+    if pred.device != gt.device:
+        raise ValueError(f"pred is on {pred.device} but gt is on {gt.device}")
+    if min(pred.shape[:2]) < min_size:
+        raise ValueError(f"images must be at least {min_size}x{min_size} pixels, got {list(pred.shape[:2])}")
+
+
+def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
+    """Peak signal-to-noise ratio in dB for a data range of 1 (inf for identical images).
+
+    Args:
+        pred, gt: [H, W, C] float images in [0, 1].
+
+    .. math::
+        \\mathrm{PSNR} = -10 \\log_{10} \\frac{1}{HWC} \\sum (\\mathrm{pred} - \\mathrm{gt})^2
+    """
+    _check(pred, gt)
+    mse = float(((pred.double() - gt.double()) ** 2).mean())
+    return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
+
+
+def _gaussian_window(device) -> torch.Tensor:
+    x = torch.arange(SSIM_WINDOW, dtype=torch.float64, device=device) - (SSIM_WINDOW - 1) / 2
+    w = torch.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
+    return w / w.sum()
+
+
+def ssim(pred: torch.Tensor, gt: torch.Tensor) -> float:
+    """Structural similarity (Wang et al. 2004) as the NeRF papers report it: a Gaussian window
+    of 11 taps, sigma 1.5, K1 0.01, K2 0.03, data range 1, population statistics, only windows
+    inside the image ("valid"), averaged over pixels and channels. Equals skimage's
+    ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+    data_range=1, channel_axis=-1)``.
+
+    Args:
+        pred, gt: [H, W, C] float images in [0, 1], H, W >= 11.
+
+    .. math::
+        \\mathrm{SSIM} = \\operatorname{mean}
+        \\frac{(2\\mu_x\\mu_y + C_1)(2\\sigma_{xy} + C_2)}{(\\mu_x^2 + \\mu_y^2 + C_1)(\\sigma_x^2 + \\sigma_y^2 + C_2)},
+        \\quad C_1 = K_1^2,\\ C_2 = K_2^2,
+
+    with means and (co)variances taken under the Gaussian window.
+    """
+    _check(pred, gt, SSIM_WINDOW)
+    x = pred.double().permute(2, 0, 1)[:, None]  # [C, 1, H, W]
+    y = gt.double().permute(2, 0, 1)[:, None]
+    w = _gaussian_window(x.device)
+
+    def blur(t: torch.Tensor) -> torch.Tensor:
+        t = F.conv2d(t, w.view(1, 1, -1, 1))
+        return F.conv2d(t, w.view(1, 1, 1, -1))
+
+    mu_x, mu_y = blur(x), blur(y)
+    var_x = blur(x * x) - mu_x**2
+    var_y = blur(y * y) - mu_y**2
+    cov = blur(x * y) - mu_x * mu_y
+    c1, c2 = SSIM_K1**2, SSIM_K2**2
+    s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return float(s.mean())

@@ -1,0 +1,204 @@
+"""``render_rays``: rays → pixels through an occupancy grid and any radiance field.
+
+Ray marching (:func:`ngp_warp.ray_marching`, no gradient) produces packed samples, the field
+is evaluated on them in torch, and the compositing autograd function defined here (behind
+:func:`ngp_warp.composite`) blends them front to back with a hand-written backward, so
+gradients reach the field's parameters. Embed it in a model::
+
+    import torch, ngp_warp
+
+    aabb = torch.tensor([-1.5, -1.5, -1.5, 1.5, 1.5, 1.5], device="cuda")
+    grid = ngp_warp.OccupancyGrid(aabb, resolution=128).to("cuda")
+    field = MyField().cuda()        # (positions [S,3], directions [S,3]) -> (sigmas [S], rgbs [S,3])
+    opt = torch.optim.Adam(field.parameters(), lr=1e-2)
+    step = grid.default_step_size   # box diagonal / 1024
+    for it, (rays_o, rays_d, target) in enumerate(batches):  # [n,3], [n,3] unit, [n,3]
+        grid.update(it, lambda x: field.density(x) * step)
+        out = ngp_warp.render_rays(rays_o, rays_d, grid, field, step_size=step,
+                                   background=torch.ones(3, device="cuda"), stratified=True)
+        loss = torch.nn.functional.mse_loss(out["rgb"], target)
+        opt.zero_grad(); loss.backward(); opt.step()
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import warp as wp
+
+from ngp_warp import _wp
+from ngp_warp.kernels import composite as K
+from ngp_warp.occupancy import OccupancyGrid
+from ngp_warp.raymarch import ray_marching
+
+FieldFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+def _vec3(t: torch.Tensor) -> wp.array:
+    return _wp.to_wp(t, dtype=wp.vec3)
+
+
+class _Composite(torch.autograd.Function):
+    """Compositing with the Warp forward and hand-written backward kernels."""
+
+    @staticmethod
+    def forward(ctx, sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: float):
+        n_rays, n_samples = ray_offsets.shape[0] - 1, sigmas.shape[0]
+        dev = sigmas.device
+        rgb = torch.empty(n_rays, 3, dtype=torch.float32, device=dev)
+        opacity = torch.empty(n_rays, dtype=torch.float32, device=dev)
+        depth = torch.empty(n_rays, dtype=torch.float32, device=dev)
+        trans = torch.empty(n_samples, dtype=torch.float32, device=dev)
+        weights = torch.empty(n_samples, dtype=torch.float32, device=dev)
+        # Warp views of the inputs and T, reused by the backward (conversions cost host time).
+        ctx.views = [_wp.to_wp(sigmas), _vec3(rgbs), _wp.to_wp(t_starts), _wp.to_wp(t_ends), _wp.to_wp(ray_offsets)]
+        ctx.views_trans = _wp.to_wp(trans)
+        _wp.launch(
+            K.composite_forward, n_rays,
+            [*ctx.views, float(early_stop_eps), _vec3(rgb), _wp.to_wp(opacity), _wp.to_wp(depth), ctx.views_trans,
+             _wp.to_wp(weights)],
+            _wp.device_of(sigmas),
+        )
+        ctx.save_for_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans)
+        ctx.set_materialize_grads(False)
+        return rgb, opacity, depth, weights
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_opacity, g_depth, g_weights):
+        sigmas, rgbs, _, _, ray_offsets, _ = ctx.saved_tensors  # also checks for in-place changes
+        if g_rgb is None and g_opacity is None and g_depth is None and g_weights is None:
+            return None, None, None, None, None, None
+        n_rays = ray_offsets.shape[0] - 1
+        dev = sigmas.device
+        g_rgb = torch.zeros(n_rays, 3, device=dev) if g_rgb is None else g_rgb.float().contiguous()
+        g_opacity = torch.zeros(n_rays, device=dev) if g_opacity is None else g_opacity.float().contiguous()
+        g_depth = torch.zeros(n_rays, device=dev) if g_depth is None else g_depth.float().contiguous()
+        grad_sigmas = torch.empty_like(sigmas)
+        grad_rgbs = torch.empty_like(rgbs)
+        _wp.launch(
+            K.composite_backward, n_rays,
+            [*ctx.views, ctx.views_trans, _vec3(g_rgb), _wp.to_wp(g_opacity), _wp.to_wp(g_depth),
+             None if g_weights is None else _wp.to_wp(g_weights.float().contiguous()), int(g_weights is not None),
+             _wp.to_wp(grad_sigmas), _vec3(grad_rgbs)],
+            _wp.device_of(sigmas),
+        )
+        return grad_sigmas, grad_rgbs, None, None, None, None
+
+
+def composite_packed(
+    sigmas: torch.Tensor,
+    rgbs: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    ray_offsets: torch.Tensor,
+    early_stop_eps: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`ngp_warp.composite` on validated, contiguous float32 samples (S ≥ 1) given by
+    ``ray_offsets`` [n_rays + 1] int32 (as from :func:`ngp_warp.ray_marching`), skipping the
+    conversion from ray indices.
+
+    Returns ``(rgb [n_rays, 3], opacity [n_rays], depth [n_rays], weights [S])``, all
+    differentiable w.r.t. ``sigmas`` and ``rgbs``.
+    """
+    return _Composite.apply(sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps))
+
+
+def ray_offsets_from_indices(ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """[S] int64 sorted ray indices (S ≥ 1) → [n_rays + 1] int32 offsets, on the device, no sync."""
+    offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=ray_indices.device)
+    _wp.launch(
+        K.offsets_from_indices, ray_indices.shape[0],
+        [_wp.to_wp(ray_indices), ray_indices.shape[0], n_rays, _wp.to_wp(offsets)],
+        _wp.device_of(ray_indices),
+    )
+    return offsets
+
+
+def _background(background, n_rays: int, device: torch.device) -> torch.Tensor | None:
+    if background is None:
+        return None
+    bg = torch.as_tensor(background, dtype=torch.float32, device=device)
+    if bg.dim() == 0:
+        bg = bg.expand(3)
+    if tuple(bg.shape) not in ((3,), (n_rays, 3)):
+        raise ValueError(f"background must be a float, [3] or [{n_rays}, 3], got shape {tuple(bg.shape)}")
+    return bg
+
+
+def render_rays(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    grid: OccupancyGrid,
+    field_fn: FieldFn,
+    *,
+    near: float = 0.0,
+    far: float = 1e10,
+    step_size: float | None = None,
+    cone_angle: float = 0.0,
+    max_step: float | None = None,
+    early_stop_eps: float = 1e-4,
+    background=None,
+    stratified: bool = False,
+    max_samples_per_ray: int | None = None,
+    max_samples: int | None = None,
+    return_samples: bool = False,
+) -> dict:
+    """Render rays through ``grid`` with the radiance field ``field_fn``.
+
+    .. math::
+
+        C_{out} = \\sum_i w_i c_i + b\\,(1 - O), \\qquad O = \\sum_i w_i, \\qquad
+        D = \\sum_i w_i \\frac{t^{start}_i + t^{end}_i}{2}
+
+    with :math:`w_i` as in :func:`ngp_warp.composite`.
+
+    Args:
+        rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 unit directions.
+        grid: :class:`ngp_warp.OccupancyGrid` on the rays' device.
+        field_fn: ``(positions [S, 3] float32, directions [S, 3] float32) → (sigmas [S] or
+            [S, 1] ≥ 0, rgbs [S, 3])``; not called when no ray has a sample.
+        near, far, step_size, cone_angle, max_step, stratified, max_samples_per_ray, max_samples:
+            as in :func:`ngp_warp.ray_marching` (``step_size`` defaults to the box diagonal / 1024).
+        early_stop_eps: samples behind transmittance ``< early_stop_eps`` contribute nothing
+            (the field is still evaluated on them).
+        background: None, a float, [3] or [N, 3] colour blended behind the samples.
+        return_samples: also return the packed samples and their differentiable weights.
+
+    Returns:
+        dict with ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] (float32, differentiable w.r.t.
+        the field) and ``n_samples`` (int); with ``return_samples`` also ``weights`` [S],
+        ``ray_indices`` [S] int64, ``t_starts`` [S], ``t_ends`` [S].
+    """
+    if early_stop_eps < 0:
+        raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
+    samples = ray_marching(
+        rays_o, rays_d, grid, near=near, far=far, step_size=step_size, cone_angle=cone_angle, max_step=max_step,
+        stratified=stratified, max_samples_per_ray=max_samples_per_ray, max_samples=max_samples,
+    )
+    n_rays, n_samples, dev = rays_o.shape[0], samples.n_samples, rays_o.device
+    bg = _background(background, n_rays, dev)
+    if n_samples == 0:
+        rgb = torch.zeros(n_rays, 3, device=dev)
+        opacity = torch.zeros(n_rays, device=dev)
+        depth = torch.zeros(n_rays, device=dev)
+        weights = torch.zeros(0, device=dev)
+    else:
+        sigmas, rgbs = field_fn(samples.positions, samples.directions)
+        if not isinstance(sigmas, torch.Tensor) or sigmas.shape[0] != n_samples or sigmas.numel() != n_samples:
+            raise ValueError(f"field_fn must return sigmas of shape [{n_samples}] or [{n_samples}, 1], "
+                             f"got {getattr(sigmas, 'shape', type(sigmas).__name__)}")
+        if not isinstance(rgbs, torch.Tensor) or tuple(rgbs.shape) != (n_samples, 3):
+            raise ValueError(f"field_fn must return rgbs of shape [{n_samples}, 3], "
+                             f"got {getattr(rgbs, 'shape', type(rgbs).__name__)}")
+        rgb, opacity, depth, weights = composite_packed(
+            sigmas.reshape(n_samples).float().contiguous(), rgbs.float().contiguous(),
+            samples.t_starts, samples.t_ends, samples.ray_offsets, early_stop_eps,
+        )
+    if bg is not None:
+        rgb = rgb + bg * (1.0 - opacity)[:, None]
+    out = {"rgb": rgb, "opacity": opacity, "depth": depth, "n_samples": n_samples}
+    if return_samples:
+        out.update(weights=weights, ray_indices=samples.ray_indices, t_starts=samples.t_starts,
+                   t_ends=samples.t_ends)
+    return out

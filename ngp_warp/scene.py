@@ -1,0 +1,189 @@
+"""The project's own procedural scene, rendered exactly by a Warp sphere tracer and written as a
+NeRF-synthetic folder (``transforms_{train,test}.json``, ``train/r_i.png``, ``test/r_i.png``,
+RGBA on a transparent background, plus ``scene.json`` describing how it was made)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import tempfile
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from ngp_warp import _wp
+from ngp_warp.data import DataError
+from ngp_warp.kernels import scene as K
+
+CAMERA_ANGLE_X = 0.6911112070083618  # the Blender scenes' horizontal field of view, radians
+CAMERA_RADIUS = 4.0
+TRAIN_ELEVATION = (8.0, 80.0)  # degrees; train views cover this band of the upper hemisphere
+TEST_ELEVATION = (15.0, 55.0)  # test views: one spiral turn, a path of their own
+
+
+def render_demo_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
+                      supersample: int = 3) -> torch.Tensor:
+    """Render the demo scene from cameras, on their device.
+
+    Args:
+        c2w: [V, 3, 4] float32 camera-to-world, OpenGL convention.
+        intrinsics: [V, 4] float32 fx, fy, cx, cy in pixels.
+        width, height: image size in pixels.
+        supersample: ss; each pixel averages ss x ss stratified rays.
+
+    Returns:
+        [V, H, W, 4] float32: straight (not premultiplied) RGB in [0, 1] and alpha = covered
+        fraction of the pixel,
+
+    .. math::
+        \\alpha = \\frac{1}{ss^2} \\sum_s [\\text{ray } s \\text{ hits}],\\qquad
+        \\mathrm{rgb} = \\frac{\\sum_{s\\,\\text{hits}} c(x_s, d_s)}{\\sum_s [\\text{ray } s \\text{ hits}]}.
+    """
+    for name, t, shape in (("c2w", c2w, (3, 4)), ("intrinsics", intrinsics, (4,))):
+        if not isinstance(t, torch.Tensor) or t.dim() != len(shape) + 1 or tuple(t.shape[1:]) != shape:
+            raise ValueError(f"{name} must be a tensor of shape [V, {', '.join(map(str, shape))}]")
+        if t.dtype != torch.float32:
+            raise ValueError(f"{name} must be float32, got {t.dtype}")
+    if intrinsics.shape[0] != c2w.shape[0] or intrinsics.device != c2w.device:
+        raise ValueError("c2w and intrinsics must hold the same number of views on the same device")
+    for name, v in (("width", width), ("height", height), ("supersample", supersample)):
+        if not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name} must be a positive int, got {v!r}")
+    device = _wp.device_of(c2w)
+    n_views = c2w.shape[0]
+    out = torch.empty(n_views * height * width, 4, dtype=torch.float32, device=c2w.device)
+    _wp.launch(K.render_views, out.shape[0],
+               [_wp.to_wp(c2w.contiguous()), _wp.to_wp(intrinsics.contiguous()), width, height,
+                supersample, _wp.to_wp(out)], device)
+    return out.reshape(n_views, height, width, 4)
+
+
+def look_at(position: np.ndarray, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """[3, 4] float64 OpenGL camera-to-world at ``position`` looking at ``target`` (``up`` is up)."""
+    forward = np.asarray(target, dtype=np.float64) - position
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right = right / np.linalg.norm(right)
+    cam_up = np.cross(right, forward)
+    return np.stack([right, cam_up, -forward, position], axis=1)
+
+
+def _on_sphere(azimuth: np.ndarray, elevation_deg: np.ndarray) -> np.ndarray:
+    el = np.radians(elevation_deg)
+    return CAMERA_RADIUS * np.stack([np.cos(el) * np.cos(azimuth), np.cos(el) * np.sin(azimuth), np.sin(el)], -1)
+
+
+def demo_cameras(n_train: int, n_test: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-to-world matrices ([n, 3, 4] float64) of the train and test views.
+
+    Train views: a golden-angle spiral over the band ``TRAIN_ELEVATION`` of the sphere of radius
+    ``CAMERA_RADIUS`` (even coverage), turned and jittered by ``seed``. Test views: one spiral
+    turn over ``TEST_ELEVATION``, a different path, so no test view is a train view.
+    """
+    rng = np.random.default_rng(seed)
+    k = np.arange(n_train) + 0.5
+    lo, hi = np.sin(np.radians(TRAIN_ELEVATION))
+    elevation = np.degrees(np.arcsin(lo + (hi - lo) * k / n_train))
+    azimuth = k * math.pi * (3.0 - math.sqrt(5.0)) + rng.uniform(0, 2 * math.pi) + rng.normal(0, 0.05, n_train)
+    train = np.stack([look_at(p) for p in _on_sphere(azimuth, elevation)])
+    k = np.arange(n_test) + 0.5
+    elevation = TEST_ELEVATION[0] + (TEST_ELEVATION[1] - TEST_ELEVATION[0]) * k / n_test
+    azimuth = 2 * math.pi * k / n_test + rng.uniform(0, 2 * math.pi)
+    test = np.stack([look_at(p) for p in _on_sphere(azimuth, elevation)])
+    return train, test
+
+
+def _scene_description(width, height, n_train, n_test, seed, supersample) -> dict:
+    return {
+        "generator": "ngp-warp demo scene",
+        "width": width, "height": height, "n_train": n_train, "n_test": n_test, "seed": seed,
+        "supersample": supersample, "camera_radius": CAMERA_RADIUS, "camera_angle_x": CAMERA_ANGLE_X,
+        "objects": [
+            {"shape": "sphere", "center": K.SPHERE_CENTER, "radius": K.SPHERE_RADIUS, "texture": "checker"},
+            {"shape": "rounded box", "center": K.BOX_CENTER, "half_extents": K.BOX_HALF,
+             "rounding": K.BOX_ROUND, "turn_z": K.BOX_ANGLE, "texture": "stripes"},
+            {"shape": "torus", "center": K.TORUS_CENTER, "major": K.TORUS_MAJOR, "minor": K.TORUS_MINOR,
+             "texture": "hue wheel"},
+            {"shape": "rounded cylinder", "center": K.CYL_CENTER, "radius": K.CYL_RADIUS,
+             "half_height": K.CYL_HALF_HEIGHT, "rounding": K.CYL_ROUND, "texture": "vertical gradient"},
+        ],
+        "light": {"direction": K.LIGHT_DIR, "ambient": K.AMBIENT, "diffuse": K.DIFFUSE,
+                  "specular": K.SPECULAR, "shininess": K.SHININESS},
+    }
+
+
+def _write_split(folder: Path, split: str, c2w: np.ndarray, width: int, height: int, supersample: int) -> None:
+    fx = 0.5 * width / math.tan(0.5 * CAMERA_ANGLE_X)
+    c2w32 = torch.from_numpy(c2w).float()  # exactly the float32 matrices load_scene will return
+    intrinsics = torch.tensor([[fx, fx, width / 2, height / 2]], dtype=torch.float32).expand(len(c2w), 4)
+    rgba = render_demo_views(c2w32, intrinsics, width, height, supersample)
+    rgba = (rgba * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()
+    (folder / split).mkdir()
+    frames = []
+    for i, (image, m) in enumerate(zip(rgba, c2w)):
+        iio.imwrite(folder / split / f"r_{i}.png", image)
+        frames.append({"file_path": f"./{split}/r_{i}",
+                       "transform_matrix": np.vstack([m, [0.0, 0.0, 0.0, 1.0]]).tolist()})
+    text = json.dumps({"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}, indent=2)
+    (folder / f"transforms_{split}.json").write_text(text)
+
+
+def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100, n_train: int = 50,
+                     n_test: int = 10, seed: int = 0, supersample: int = 3, overwrite: bool = False) -> Path:
+    """Render the demo scene and write it as a NeRF-synthetic folder at ``out_dir``.
+
+    Everything is written into a temporary sibling folder that is renamed into place at the end,
+    so a failure leaves nothing behind (not even parent folders this call created).
+
+    Args:
+        out_dir: folder to create; it must not exist unless ``overwrite``.
+        width, height: image size in pixels (small by default: the CPU demo trains in minutes).
+        n_train, n_test: number of train and test views.
+        seed: turns and jitters the cameras; the same seed gives the same files.
+        supersample: each pixel averages ``supersample**2`` rays (anti-aliasing, fractional alpha).
+        overwrite: replace an existing ``out_dir``.
+
+    Returns:
+        The folder written, as a Path.
+
+    Raises:
+        DataError: ``out_dir`` exists (without ``overwrite``) or cannot be written.
+    """
+    for name, v in (("width", width), ("height", height), ("n_train", n_train), ("n_test", n_test),
+                    ("supersample", supersample)):
+        if not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name} must be a positive int, got {v!r}")
+    out = Path(out_dir)
+    if out.exists() and not overwrite:
+        raise DataError(f"{out}: already exists (choose another folder or overwrite it)")
+    created = [p for p in [out.parent, *out.parent.parents] if not p.exists()]
+    tmp, done = None, False
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+        train, test = demo_cameras(n_train, n_test, seed)
+        _write_split(tmp, "train", train, width, height, supersample)
+        _write_split(tmp, "test", test, width, height, supersample)
+        description = _scene_description(width, height, n_train, n_test, seed, supersample)
+        (tmp / "scene.json").write_text(json.dumps(description, indent=2))
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+        done = True
+    except OSError as e:
+        raise DataError(f"{out}: cannot write the demo scene ({e.strerror or e})") from None
+    finally:
+        if not done:
+            if tmp is not None:
+                shutil.rmtree(tmp, ignore_errors=True)
+            for p in created:  # innermost first; stops at the first that is not empty
+                try:
+                    p.rmdir()
+                except FileNotFoundError:
+                    continue
+                except OSError:
+                    break
+    return out

@@ -1,0 +1,340 @@
+"""Dataset parsing (NeRF-synthetic, instant-ngp), downscaling and the bad-input messages."""
+
+import json
+import math
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+from data_fixtures import fov_to_focal, instant_ngp, nerf_synthetic, random_c2w, write_json
+
+from ngp_warp.cameras import distort, undistort
+from ngp_warp.data import DataError, Split, downscale_image, generate_rays, image_rays, load_scene
+
+
+# ---- NeRF-synthetic ---------------------------------------------------------------------------
+
+def test_nerf_synthetic_loads_images_cameras_and_box(tmp_path):
+    written = nerf_synthetic(tmp_path, n_train=3, n_test=2, size=(8, 6), angle=0.69)
+    scene = load_scene(tmp_path)
+    assert scene.source == "nerf-synthetic" and not scene.test_is_heldout
+    assert scene.occupancy_levels == 1
+    assert scene.aabb.tolist() == [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
+    assert torch.equal(scene.occupancy_aabb, scene.aabb)
+    for split, name in ((scene.train, "train"), (scene.test, "test")):
+        meta, images = written[name]
+        assert split.images.dtype == torch.uint8 and split.images.shape == (len(images), 6, 8, 4)
+        assert (split.width, split.height) == (8, 6)
+        np.testing.assert_array_equal(split.images.numpy(), np.stack(images))
+        c2w = np.array([f["transform_matrix"] for f in meta["frames"]])[:, :3]
+        np.testing.assert_allclose(split.c2w.numpy(), c2w, rtol=1e-6, atol=1e-6)
+        f = fov_to_focal(8, 0.69)
+        np.testing.assert_allclose(split.intrinsics.numpy(), np.tile([f, f, 4.0, 3.0], (len(images), 1)), rtol=1e-6)
+        assert not split.has_distortion and split.distortion.abs().sum() == 0
+        assert [n.rsplit("/", 1)[-1] for n in split.names] == [f"r_{i}.png" for i in range(len(images))]
+
+
+def test_nerf_synthetic_without_test_split_holds_out_frames(tmp_path):
+    nerf_synthetic(tmp_path, n_train=7, with_test=False)
+    scene = load_scene(tmp_path, holdout_every=3)
+    assert scene.test_is_heldout and scene.source == "nerf-synthetic"
+    stem = lambda names: [n.rsplit("/", 1)[-1] for n in names]  # noqa: E731
+    assert stem(scene.test.names) == ["r_0.png", "r_3.png", "r_6.png"]
+    assert stem(scene.train.names) == ["r_1.png", "r_2.png", "r_4.png", "r_5.png"]
+
+
+# ---- instant-ngp ---------------------------------------------------------------------------------
+
+def test_instant_ngp_keys_paths_formats_and_holdout(tmp_path):
+    meta, images = instant_ngp(tmp_path, n=7, size=(8, 6))
+    # frame 2 overrides the focal length (a frame giving only fl_x sets fy = fx too, as in
+    # instant-ngp), the principal point and k1
+    meta["frames"][2].update({"fl_x": 9.0, "cx": 3.5, "k1": -0.2})
+    write_json(tmp_path / "transforms.json", meta)
+    scene = load_scene(tmp_path / "transforms.json", holdout_every=3)
+    assert scene.source == "instant-ngp" and scene.test_is_heldout
+    assert len(scene.train) == 4 and len(scene.test) == 3
+    order = [0, 3, 6, 1, 2, 4, 5]  # test frames first, then train
+    got = torch.cat([scene.test.images, scene.train.images]).numpy()
+    assert got.shape == (7, 6, 8, 4)  # RGB and JPG frames gain an opaque alpha channel
+    for k, i in enumerate(order):
+        rgb = images[i][..., :3]
+        alpha = images[i][..., 3] if images[i].shape[-1] == 4 else np.full(rgb.shape[:2], 255)
+        np.testing.assert_array_equal(got[k, ..., :3], rgb)
+        np.testing.assert_array_equal(got[k, ..., 3], alpha)
+    intr = torch.cat([scene.test.intrinsics, scene.train.intrinsics]).numpy()
+    dist = torch.cat([scene.test.distortion, scene.train.distortion]).numpy()
+    for k, i in enumerate(order):
+        want = [9.0, 9.0, 3.5, 2.75] if i == 2 else [7.5, 7.0, 4.25, 2.75]
+        np.testing.assert_allclose(intr[k], want, rtol=1e-6)
+        np.testing.assert_allclose(dist[k], [-0.2 if i == 2 else 0.05, -0.01, 0.002, -0.001], rtol=1e-6)
+    assert scene.train.has_distortion
+    # default scale 0.33, offset 0.5: the box [0.5 -+ 2]^3 of the unit cube, mapped to the world
+    assert scene.occupancy_levels == 3
+    np.testing.assert_allclose(scene.aabb.numpy(), [-2 / 0.33] * 3 + [2 / 0.33] * 3, rtol=1e-6)
+    assert scene.near == pytest.approx(0.1 / 0.33, rel=1e-5)
+
+
+def test_instant_ngp_scale_offset_and_aabb_key(tmp_path):
+    instant_ngp(tmp_path, n=3, aabb_scale=16, scale=0.5, offset=[0.5, 0.25, 1.0])
+    scene = load_scene(tmp_path)
+    assert scene.occupancy_levels == 5
+    lo = [(0.5 - 8 - o) / 0.5 for o in (0.5, 0.25, 1.0)]
+    hi = [(0.5 + 8 - o) / 0.5 for o in (0.5, 0.25, 1.0)]
+    np.testing.assert_allclose(scene.aabb.numpy(), lo + hi, rtol=1e-6)
+    cascade = [(0 - o) / 0.5 for o in (0.5, 0.25, 1.0)] + [(1 - o) / 0.5 for o in (0.5, 0.25, 1.0)]
+    np.testing.assert_allclose(scene.occupancy_aabb.numpy(), cascade, rtol=1e-6)
+    # the coarsest of the 5 cascades (finest box x 2^4 about its centre) is the field's box
+    centre, half = scene.occupancy_aabb.view(2, 3).mean(0), scene.occupancy_aabb.view(2, 3).diff(dim=0) / 2
+    torch.testing.assert_close(torch.cat([centre - 16 * half[0], centre + 16 * half[0]]), scene.aabb)
+    instant_ngp(tmp_path, n=3, aabb_scale=1, aabb=[[-1.0, 0.0, 2.0], [3.0, 2.0, 4.0]])
+    np.testing.assert_allclose(load_scene(tmp_path).aabb.numpy(), [-1, -1, 1, 3, 3, 5], atol=1e-5)
+
+
+def test_focal_from_angles_fov_and_json_resolution(tmp_path):
+    meta, _ = instant_ngp(tmp_path, n=2, size=(8, 6))
+    for k in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+        del meta[k]
+    meta["camera_angle_x"] = 0.9
+    meta["frames"][1]["camera_angle_y"] = 0.5  # a frame with only y: fx = fy
+    write_json(tmp_path / "transforms.json", meta)
+    scene = load_scene(tmp_path)
+    fx = fov_to_focal(8, 0.9)
+    fy = fov_to_focal(6, 0.5)
+    np.testing.assert_allclose(scene.test.intrinsics[0].numpy(), [fx, fx, 4.0, 3.0], rtol=1e-6)
+    np.testing.assert_allclose(scene.train.intrinsics[0].numpy(), [fy, fy, 4.0, 3.0], rtol=1e-6)
+    # x_fov (degrees) beats fl_x; pixel intrinsics given for w x h are rescaled to the image
+    meta["x_fov"] = 60.0
+    del meta["frames"][1]["camera_angle_y"]
+    meta["frames"][1].update({"fl_x": 20.0, "w": 16, "h": 12, "cx": 6.0, "cy": 5.0})
+    write_json(tmp_path / "transforms.json", meta)
+    scene = load_scene(tmp_path)
+    f60 = fov_to_focal(8, math.radians(60.0))
+    np.testing.assert_allclose(scene.test.intrinsics[0].numpy(), [f60, f60, 4.0, 3.0], rtol=1e-6)
+    np.testing.assert_allclose(scene.train.intrinsics[0].numpy(), [10.0, 10.0, 3.0, 2.5], rtol=1e-6)
+
+
+# ---- downscaling ---------------------------------------------------------------------------
+
+def test_downscale_area_average_rgb_with_crop():
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 256, size=(9, 7, 3), dtype=np.uint8)
+    got = downscale_image(a, 2)
+    want = np.floor(a[:8, :6].astype(float).reshape(4, 2, 3, 2, 3).mean(axis=(1, 3)) + 0.5)
+    np.testing.assert_array_equal(got, want.astype(np.uint8))
+
+
+def test_downscale_rgba_commutes_with_compositing():
+    rng = np.random.default_rng(2)
+    a = rng.integers(0, 256, size=(12, 12, 4), dtype=np.uint8)
+    a[:3, :3, 3] = 0  # one block fully transparent
+    for bg in (0.0, 255.0):
+        comp = a[..., :3] * (a[..., 3:] / 255.0) + bg * (1 - a[..., 3:] / 255.0)
+        want = comp.reshape(4, 3, 4, 3, 3).mean(axis=(1, 3))
+        d = downscale_image(a, 3).astype(float)
+        got = d[..., :3] * (d[..., 3:] / 255.0) + bg * (1 - d[..., 3:] / 255.0)
+        assert np.abs(got - want).max() <= 1.01  # uint8 rounding of rgb and alpha
+
+
+def test_load_with_downscale_divides_intrinsics(tmp_path):
+    written = nerf_synthetic(tmp_path, n_train=2, n_test=1, size=(9, 8), angle=0.7)
+    scene = load_scene(tmp_path, downscale=2)
+    assert scene.train.images.shape == (2, 4, 4, 4) and (scene.train.width, scene.train.height) == (4, 4)
+    np.testing.assert_array_equal(scene.train.images[1].numpy(), downscale_image(written["train"][1][1], 2))
+    f = fov_to_focal(9, 0.7) / 2
+    np.testing.assert_allclose(scene.train.intrinsics[0].numpy(), [f, f, 2.25, 2.0], rtol=1e-6)
+
+
+# ---- bad inputs -------------------------------------------------------------------------------
+
+def _frames(tmp_path):
+    return json.loads((tmp_path / "transforms_train.json").read_text())
+
+
+def _edit(tmp_path, change):
+    meta = _frames(tmp_path)
+    change(meta)
+    write_json(tmp_path / "transforms_train.json", meta)
+
+
+def _set(key, value, frame=1):
+    def change(meta):
+        meta["frames"][frame][key] = value
+    return change
+
+
+BAD = {
+    "no frames key": (lambda p: _edit(p, lambda m: m.pop("frames")), "transforms_train.json: no 'frames' list"),
+    "zero frames": (lambda p: _edit(p, lambda m: m.update(frames=[])), "transforms_train.json: no frames"),
+    "frame not object": (lambda p: _edit(p, lambda m: m["frames"].__setitem__(1, 3)), "frame 1: expected an object"),
+    "no file_path": (lambda p: _edit(p, lambda m: m["frames"][1].pop("file_path")), "frame 1: missing file_path"),
+    "no matrix": (lambda p: _edit(p, lambda m: m["frames"][1].pop("transform_matrix")),
+                  "frame 1: missing transform_matrix"),
+    "matrix shape": (lambda p: _edit(p, _set("transform_matrix", [[1, 0], [0, 1]])), "frame 1: transform_matrix must be"),
+    "matrix text": (lambda p: _edit(p, _set("transform_matrix", "eye")), "frame 1: transform_matrix must be"),
+    "matrix nan": (lambda p: _edit(p, _set("transform_matrix", [[float("nan")] * 4] * 4)), "frame 1: transform_matrix has non-finite"),
+    "singular": (lambda p: _edit(p, _set("transform_matrix", [[1, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
+                 "frame 1: transform_matrix is singular"),
+    "missing image": (lambda p: (p / "train" / "r_1.png").unlink(), "frame 1: missing image"),
+    "mixed sizes": (lambda p: iio.imwrite(p / "train" / "r_2.png", np.zeros((4, 4, 4), np.uint8)),
+                    "r_2.png: image is 4x4 but the first image (r_0.png) is 8x6"),
+    "unreadable image": (lambda p: (p / "test" / "r_0.png").write_bytes(b"not a png at all"), "r_0.png: cannot read image"),
+    "truncated image": (lambda p: (p / "train" / "r_1.png").write_bytes((p / "train" / "r_1.png").read_bytes()[:60]),
+                        "r_1.png: cannot read image"),
+    "no focal": (lambda p: _edit(p, lambda m: m.pop("camera_angle_x")), "frame 0: no focal length"),
+    "focal text": (lambda p: _edit(p, lambda m: m.update(camera_angle_x="wide")), "camera_angle_x must be a number"),
+    "focal negative": (lambda p: _edit(p, _set("fl_x", -3.0)), "frame 1: fl_x must be positive"),
+    "angle too wide": (lambda p: _edit(p, lambda m: m.update(camera_angle_x=4.0)), "camera_angle_x must be below a half turn"),
+    "fisheye": (lambda p: _edit(p, lambda m: m.update(is_fisheye=True)), "'is_fisheye' is not supported"),
+    "bad json": (lambda p: (p / "transforms_train.json").write_text('{"frames": [\n  {"file_path": }\n]}'),
+                 "transforms_train.json: not valid JSON (Expecting value at line 2, column 17)"),
+    "json list": (lambda p: (p / "transforms_train.json").write_text("[1, 2]"), "expected a JSON object"),
+    "bad offset": (lambda p: _edit(p, lambda m: m.update(offset=[1, 2])), "offset must be a number or a list of 3"),
+    "bad aabb_scale": (lambda p: _edit(p, lambda m: m.update(aabb_scale=0)), "aabb_scale must be positive"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_raises_one_line_naming_the_file(tmp_path, case):
+    nerf_synthetic(tmp_path, n_train=3, n_test=1, size=(8, 6))
+    spoil, message = BAD[case]
+    spoil(tmp_path)
+    with pytest.raises(DataError) as e:
+        load_scene(tmp_path)
+    text = str(e.value)
+    assert message in text and "\n" not in text
+    assert str(tmp_path) in text
+
+
+@pytest.mark.parametrize("case", ["missing folder", "empty folder", "single frame", "downscale too big", "downscale zero"])
+def test_bad_paths_and_arguments(tmp_path, case):
+    kwargs, target = {}, tmp_path
+    if case == "missing folder":
+        target, message = tmp_path / "nope", "nope: no such file or folder"
+    elif case == "empty folder":
+        message = "no transforms_train.json or transforms.json in this folder"
+    elif case == "single frame":
+        instant_ngp(tmp_path, n=1)
+        message = "transforms.json: only 1 frame"
+    elif case == "downscale too big":
+        nerf_synthetic(tmp_path, size=(8, 6))
+        kwargs, message = {"downscale": 7}, "image is 8x6, smaller than downscale 7"
+    else:
+        nerf_synthetic(tmp_path)
+        kwargs, message = {"downscale": 0}, "downscale must be a positive integer"
+    with pytest.raises(DataError) as e:
+        load_scene(target, **kwargs)
+    assert message in str(e.value) and "\n" not in str(e.value)
+    assert isinstance(e.value, ValueError)
+
+
+# ---- splits and rays ------------------------------------------------------------------------------
+
+def test_split_validates_and_moves():
+    n = 2
+    good = dict(images=torch.zeros(n, 4, 5, 3, dtype=torch.uint8), c2w=torch.zeros(n, 3, 4),
+                intrinsics=torch.ones(n, 4), distortion=torch.zeros(n, 4), names=["a", "b"], width=5, height=4)
+    s = Split(**good).to("cpu")
+    assert len(s) == 2 and not s.has_distortion
+    for key, bad in (("images", torch.zeros(n, 5, 4, 3, dtype=torch.uint8)), ("c2w", torch.zeros(n, 4, 4)),
+                     ("intrinsics", torch.ones(n, 4, dtype=torch.float64)), ("names", ["a"]),
+                     ("images", torch.zeros(n, 4, 5, 2, dtype=torch.uint8))):
+        with pytest.raises(ValueError):
+            Split(**{**good, key: bad})
+
+
+def test_image_rays_are_row_major_and_match_the_cameras(tmp_path):
+    nerf_synthetic(tmp_path, n_train=2, n_test=1, size=(8, 6))
+    split = load_scene(tmp_path).train
+    o, d = image_rays(split, 1)
+    assert o.shape == d.shape == (48, 3)
+    torch.testing.assert_close(o, split.c2w[1, :, 3].expand(48, 3))
+    fx, fy, cx, cy = split.intrinsics[1].tolist()
+    k = 2 * 8 + 5  # row 2, column 5
+    cam = torch.tensor([(5.5 - cx) / fx, -(2.5 - cy) / fy, -1.0])
+    want = split.c2w[1, :, :3] @ cam
+    torch.testing.assert_close(d[k], want / want.norm())
+    with pytest.raises(ValueError):
+        image_rays(split, 2)
+
+
+def test_random_cameras_fixture_is_valid():
+    c2w = random_c2w(np.random.default_rng(0))
+    np.testing.assert_allclose(c2w[:3, :3] @ c2w[:3, :3].T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(c2w[:3, 2], c2w[:3, 3] / 4.0, atol=1e-12)  # +z points away from the origin
+
+
+def _random_rotation(n, generator=None):
+    q, _ = torch.linalg.qr(torch.randn(n, 3, 3, dtype=torch.float64, generator=generator))
+    return q
+
+
+def _cameras(n, dtype=torch.float32):
+    c2w = torch.cat([_random_rotation(n), torch.randn(n, 3, 1, dtype=torch.float64)], dim=2).to(dtype)
+    intr = torch.tensor([[50.0, 45.0, 16.0, 12.0]], dtype=dtype).repeat(n, 1)
+    return c2w, intr
+
+
+def test_generate_rays_centre_pixel_looks_down_minus_z_opengl_axes():
+    c2w, intr = _cameras(5)
+    px = torch.full((5,), 15)  # centre of pixel 15 is 15.5 ... shifted so the ray hits cx exactly
+    intr[:, 2] = 15.5
+    intr[:, 3] = 11.5
+    o, d = generate_rays(c2w, intr, None, px, torch.full((5,), 11))
+    torch.testing.assert_close(o, c2w[:, :, 3])
+    torch.testing.assert_close(d, -c2w[:, :, 2])
+    # one pixel right: towards camera +x; one pixel down: towards camera -y
+    _, right = generate_rays(c2w, intr, None, px + 1, torch.full((5,), 11))
+    _, down = generate_rays(c2w, intr, None, px, torch.full((5,), 12))
+    cam_right = torch.einsum("bji,bj->bi", c2w[:, :, :3], right)
+    cam_down = torch.einsum("bji,bj->bi", c2w[:, :, :3], down)
+    assert (cam_right[:, 0] > 0).all() and cam_right[:, 1].abs().max() < 1e-6
+    assert (cam_down[:, 1] < 0).all() and cam_down[:, 0].abs().max() < 1e-6
+    torch.testing.assert_close(cam_right[:, 0] / -cam_right[:, 2], torch.full((5,), 1 / 50.0))
+
+
+def test_generate_rays_zero_distortion_is_identity_and_dtype_follows_c2w():
+    for dtype in (torch.float32, torch.float64):
+        c2w, intr = _cameras(64, dtype)
+        px, py = torch.randint(0, 32, (64,)), torch.randint(0, 24, (64,))
+        o1, d1 = generate_rays(c2w, intr, None, px, py)
+        o2, d2 = generate_rays(c2w, intr, torch.zeros(64, 4, dtype=dtype), px, py)
+        assert d1.dtype == dtype and torch.equal(o1, o2) and torch.equal(d1, d2)
+        torch.testing.assert_close(d1.norm(dim=-1), torch.ones(64, dtype=dtype))
+
+
+def test_undistort_inverts_distort():
+    g = torch.Generator().manual_seed(3)
+    n = 500
+    x, y = (torch.rand(2, n, dtype=torch.float64, generator=g) - 0.5) * 1.2
+    dist = torch.stack([torch.rand(n, dtype=torch.float64, generator=g) * 0.4 - 0.2,
+                        torch.rand(n, dtype=torch.float64, generator=g) * 0.1 - 0.05,
+                        torch.rand(n, dtype=torch.float64, generator=g) * 0.02 - 0.01,
+                        torch.rand(n, dtype=torch.float64, generator=g) * 0.02 - 0.01], -1)
+    xd, yd = distort(x, y, dist)
+    assert (xd - x).abs().max() > 1e-2  # the distortion is not negligible
+    ux, uy = undistort(xd, yd, dist)
+    torch.testing.assert_close(ux, x, atol=1e-10, rtol=0)
+    torch.testing.assert_close(uy, y, atol=1e-10, rtol=0)
+
+
+def test_distorted_rays_project_back_to_their_pixels():
+    c2w, intr = _cameras(200, torch.float64)
+    dist = torch.tensor([[-0.15, 0.03, 0.004, -0.003]], dtype=torch.float64).repeat(200, 1)
+    px, py = torch.randint(0, 32, (200,)), torch.randint(0, 24, (200,))
+    _, d = generate_rays(c2w, intr, dist, px, py)
+    cam = torch.einsum("bji,bj->bi", c2w[:, :, :3], d)  # R^T d
+    x, y = cam[:, 0] / -cam[:, 2], -cam[:, 1] / -cam[:, 2]
+    xd, yd = distort(x, y, dist)
+    torch.testing.assert_close(xd * intr[:, 0] + intr[:, 2], px.double() + 0.5, atol=1e-8, rtol=0)
+    torch.testing.assert_close(yd * intr[:, 1] + intr[:, 3], py.double() + 0.5, atol=1e-8, rtol=0)
+
+
+def test_generate_rays_rejects_bad_shapes():
+    c2w, intr = _cameras(4)
+    px = torch.zeros(4, dtype=torch.long)
+    for args in ((c2w[:, :2], intr, None, px, px), (c2w, intr[:3], None, px, px), (c2w, intr, None, px[:3], px),
+                 (c2w, intr, torch.zeros(4, 5), px, px), (c2w.long(), intr, None, px, px), (c2w, intr, None, px, "y")):
+        with pytest.raises(ValueError):
+            generate_rays(*args)

@@ -1,0 +1,204 @@
+import math
+
+import pytest
+import torch
+
+from ngp_warp import OccupancyGrid, ray_marching
+from ngp_warp._reference.render import cascade_cells_ref, march_ref, ray_box_ref
+
+AABB = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+MARGIN = 1e-3  # midpoints closer than this (in cells) to a cell face may be classified either way
+
+
+def random_grid(levels, resolution=16, p=0.3, device="cpu"):
+    """A grid whose cells are occupied independently with probability p."""
+    grid = OccupancyGrid(torch.tensor(AABB), resolution=resolution, levels=levels).to(device)
+    grid.occs.copy_((torch.rand(grid.n_cells) < p).float())
+    grid.threshold.fill_(0.5)
+    grid._pack()
+    return grid
+
+
+def random_rays(n, levels, device="cpu"):
+    """Rays from outside towards the box, rays starting inside, axis-aligned rays, misses."""
+    s = 2.0 ** (levels - 1)
+    o_out = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1) * 3.0 * s
+    d_out = torch.nn.functional.normalize(torch.rand(n, 3) * s - o_out, dim=-1)
+    o_in = (torch.rand(n, 3) * 2 - 1) * 1.5 * s
+    d_in = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+    o_axis = (torch.rand(n // 4, 3) * 2 - 1) * s
+    o_axis[:, 0] = -2.0 * s
+    d_axis = torch.tensor([[1.0, 0.0, 0.0]]).expand(n // 4, 3)
+    o_miss = torch.tensor([[0.0, 3.0 * s, 0.0]]).expand(8, 3) + torch.randn(8, 3) * 0.1
+    d_miss = torch.nn.functional.normalize(torch.randn(8, 3).abs() + 0.1, dim=-1)  # +y: away from the box
+    rays_o = torch.cat([o_out, o_in, o_axis, o_miss]).contiguous()
+    rays_d = torch.cat([d_out, d_in, d_axis, d_miss]).contiguous()
+    return rays_o.to(device), rays_d.to(device)
+
+
+def match_dense(samples, dense, rtol_t=1e-4):
+    """Index into the dense table of each emitted sample (asserting one exists)."""
+    key_dense = dense["ray"].double() * 1e3 + dense["t_start"]
+    key = samples.ray_indices.cpu().double() * 1e3 + samples.t_starts.cpu().double()
+    pos = torch.searchsorted(key_dense, key).clamp(1, key_dense.numel() - 1)
+    pos = torch.where((key - key_dense[pos - 1]).abs() < (key - key_dense[pos]).abs(), pos - 1, pos)
+    err = (key - key_dense[pos]).abs()
+    assert (err <= rtol_t * (1 + samples.t_starts.cpu().double().abs())).all(), err.max()
+    torch.testing.assert_close(samples.t_ends.cpu().double(), dense["t_end"][pos], rtol=1e-4, atol=1e-5)
+    return pos
+
+
+def check_against_dense(samples, dense):
+    pos = match_dense(samples, dense)
+    sure = dense["margin"] > MARGIN
+    # every emitted sample lies in an occupied cell
+    assert (dense["occupied"][pos] | ~sure[pos]).all()
+    # no occupied stretch is skipped
+    emitted = torch.zeros_like(sure)
+    emitted[pos] = True
+    required = dense["occupied"] & sure
+    assert (emitted | ~required).all(), f"{int((required & ~emitted).sum())} occupied samples skipped"
+    assert required.sum() > 1000 and (~sure).float().mean() < 0.01  # the comparison is not vacuous
+
+
+@pytest.mark.parametrize("levels", [1, 2, 3])
+def test_fixed_step_matches_dense_sampler(levels):
+    grid = random_grid(levels)
+    rays_o, rays_d = random_rays(300, levels)
+    step = 0.0173
+    samples = ray_marching(rays_o, rays_d, grid, near=0.05, step_size=step)
+    dense = march_ref(rays_o, rays_d, AABB, grid.occupied(), near=0.05, step=step)
+    check_against_dense(samples, dense)
+
+
+def test_cone_angle_matches_dense_sampler():
+    grid = random_grid(3)
+    rays_o, rays_d = random_rays(300, 3)
+    kw = dict(near=0.05, cone_angle=1 / 64, max_step=0.12)
+    samples = ray_marching(rays_o, rays_d, grid, step_size=0.01, **kw)
+    dense = march_ref(rays_o, rays_d, AABB, grid.occupied(), step=0.01, **kw)
+    check_against_dense(samples, dense)
+    dt = samples.t_ends - samples.t_starts
+    assert dt.max() > 0.11 and dt.min() < 0.0101  # steps grow with t and are clamped
+
+
+def test_misses_emit_nothing_and_inside_rays_start_at_near():
+    grid = OccupancyGrid(torch.tensor(AABB), resolution=8)  # fresh grid: everything occupied
+    rays_o = torch.tensor([[0.0, 3.0, 0.0], [0.0, 3.0, 0.0], [0.2, -0.3, 0.1], [0.2, -0.3, 0.1], [0.0, 0.0, 0.0]])
+    rays_d = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 0.0]])
+    samples = ray_marching(rays_o, rays_d, grid, near=0.1, step_size=0.01)
+    counts = samples.ray_offsets.diff()
+    assert counts.tolist()[:2] == [0, 0] and counts[-1] == 0  # misses and a zero direction
+    for r in (2, 3):
+        t = samples.t_starts[samples.ray_indices == r]
+        _, t_out = ray_box_ref(rays_o[r:r + 1], rays_d[r:r + 1], AABB[:3], AABB[3:])
+        assert t[0] == pytest.approx(0.1) and counts[r] == math.ceil((t_out.item() - 0.1) / 0.01)
+
+
+def test_fresh_grid_tiles_the_clipped_interval_exactly():
+    grid = OccupancyGrid(torch.tensor(AABB), resolution=8, levels=2)
+    rays_o, rays_d = random_rays(64, 2)
+    samples = ray_marching(rays_o, rays_d, grid, near=0.0, far=4.0, step_size=0.02)
+    t_in, t_out = ray_box_ref(rays_o, rays_d, [-2.0] * 3, [2.0] * 3)
+    for r in range(rays_o.shape[0]):
+        s = slice(samples.ray_offsets[r], samples.ray_offsets[r + 1])
+        t0, t1 = max(t_in[r].item(), 0.0), min(t_out[r].item(), 4.0)
+        if t0 >= t1:
+            assert s.start == s.stop
+            continue
+        ts, te = samples.t_starts[s].double(), samples.t_ends[s].double()
+        assert ts[0].item() == pytest.approx(t0, abs=1e-5) and te[-1].item() == pytest.approx(t1, abs=1e-5)
+        torch.testing.assert_close(ts[1:], te[:-1], rtol=0, atol=1e-5)
+
+
+def test_layout_positions_and_directions():
+    grid = random_grid(2)
+    rays_o, rays_d = random_rays(100, 2)
+    s = ray_marching(rays_o, rays_d, grid, step_size=0.02)
+    assert s.ray_indices.dtype == torch.int64 and s.ray_offsets.dtype == torch.int32
+    assert (s.ray_indices.diff() >= 0).all()
+    assert torch.equal(torch.repeat_interleave(torch.arange(rays_o.shape[0]), s.ray_offsets.diff().long()), s.ray_indices)
+    mid = 0.5 * (s.t_starts + s.t_ends)
+    torch.testing.assert_close(s.positions, rays_o[s.ray_indices] + rays_d[s.ray_indices] * mid[:, None])
+    assert torch.equal(s.directions, rays_d[s.ray_indices])
+    assert (s.t_ends > s.t_starts).all()
+
+
+def test_stratified_jitter_is_seeded_and_stays_on_a_regular_grid():
+    grid = random_grid(2)
+    rays_o, rays_d = random_rays(200, 2)
+    torch.manual_seed(1)
+    a = ray_marching(rays_o, rays_d, grid, step_size=0.02, stratified=True)
+    torch.manual_seed(1)
+    b = ray_marching(rays_o, rays_d, grid, step_size=0.02, stratified=True)
+    c = ray_marching(rays_o, rays_d, grid, step_size=0.02, stratified=True)
+    assert torch.equal(a.t_starts, b.t_starts) and not torch.equal(a.t_starts, c.t_starts)
+    plain = ray_marching(rays_o, rays_d, grid, step_size=0.02)
+    t_in, _ = ray_box_ref(rays_o, rays_d, [-2.0] * 3, [2.0] * 3)
+    t0 = t_in.clamp(min=0)[a.ray_indices]
+    k = (a.t_starts.double() - t0) / 0.02
+    frac = k - k.floor()
+    # all samples of a ray share one offset u·Δt, u ~ U[0, 1), and lie in occupied cells
+    first = a.ray_offsets[:-1][a.ray_offsets.diff() > 0].long()
+    per_ray = torch.repeat_interleave(frac[first], a.ray_offsets.diff()[a.ray_offsets.diff() > 0].long())
+    torch.testing.assert_close(frac, per_ray, rtol=0, atol=1e-3)
+    assert frac[first].std() > 0.2
+    dense_cells = grid.occupied().reshape(-1)
+    cells, margin = cascade_cells_ref(a.positions, AABB, 16, 2)
+    assert (dense_cells[cells] | (margin < MARGIN)).all()
+    assert abs(a.n_samples - plain.n_samples) < 0.05 * plain.n_samples
+
+
+def test_caps_keep_the_front_samples():
+    grid = random_grid(1, p=0.8)
+    rays_o, rays_d = random_rays(100, 1)
+    full = ray_marching(rays_o, rays_d, grid, step_size=0.02)
+    capped = ray_marching(rays_o, rays_d, grid, step_size=0.02, max_samples_per_ray=7)
+    counts = full.ray_offsets.diff()
+    assert torch.equal(capped.ray_offsets.diff(), counts.clamp(max=7)) and counts.max() > 7
+    keep = torch.arange(full.n_samples) - full.ray_offsets[full.ray_indices].long() < 7
+    assert torch.equal(capped.t_starts, full.t_starts[keep])
+    total = ray_marching(rays_o, rays_d, grid, step_size=0.02, max_samples=1000)
+    assert total.n_samples == 1000 and torch.equal(total.t_starts, full.t_starts[:1000])
+    assert torch.equal(total.ray_indices, full.ray_indices[:1000])
+
+
+def _bad_calls():
+    grid = OccupancyGrid(torch.tensor(AABB), resolution=8)
+    o, d = torch.zeros(4, 3), torch.ones(4, 3)
+    yield "rank", (o[0], d, grid), {}
+    yield "width", (torch.zeros(4, 2), d, grid), {}
+    yield "dtype", (o.double(), d, grid), {}
+    yield "count", (o, d[:3], grid), {}
+    yield "grid", (o, d, "grid"), {}
+    yield "step", (o, d, grid), {"step_size": 0.0}
+    yield "near far", (o, d, grid), {"near": 2.0, "far": 1.0}
+    yield "cone", (o, d, grid), {"cone_angle": -0.1}
+    yield "max step", (o, d, grid), {"step_size": 0.1, "max_step": 0.01}
+
+
+@pytest.mark.parametrize("case", list(_bad_calls()), ids=lambda c: c[0])
+def test_invalid_inputs_raise_value_error(case):
+    _, args, kwargs = case
+    with pytest.raises(ValueError):
+        ray_marching(*args, **kwargs)
+
+
+@pytest.mark.cuda
+def test_cuda_matches_cpu():
+    grid = random_grid(2)
+    rays_o, rays_d = random_rays(300, 2)
+    kw = dict(step_size=0.01, cone_angle=1 / 128)
+    cpu = ray_marching(rays_o, rays_d, grid, **kw)
+    gpu = ray_marching(rays_o.cuda(), rays_d.cuda(), grid.to("cuda"), **kw)
+    gpu = type(gpu)(*(t.cpu() for t in vars(gpu).values()))
+    # Midpoints within float rounding of a cell face may be classified differently on the two
+    # devices, so both are checked against the float64 dense sampler and rays compared.
+    dense = march_ref(rays_o, rays_d, AABB, grid.occupied().cpu(), step=0.01, cone_angle=1 / 128)
+    check_against_dense(gpu, dense)
+    same = cpu.ray_offsets.diff() == gpu.ray_offsets.diff()
+    assert same.float().mean() > 0.99
+    sel_cpu = same[cpu.ray_indices]
+    sel_gpu = same[gpu.ray_indices]
+    for name in ("t_starts", "t_ends", "positions", "directions"):
+        torch.testing.assert_close(getattr(cpu, name)[sel_cpu], getattr(gpu, name)[sel_gpu], rtol=1e-5, atol=1e-5)
