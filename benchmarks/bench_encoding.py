@@ -20,7 +20,8 @@ spatially coherent). Columns, per size and variant, in million points per second
 
 Times are medians over ``--repeats`` calls after warm-up: CUDA events around each call on a
 GPU, ``perf_counter`` on the CPU. Variants (``--variants``; tokens joined by ``+``) set the
-CUDA scheduling knobs of ``HashGridEncoding``: ``gN`` levels per thread, ``pair`` / ``nopair``
+CUDA scheduling knobs of ``HashGridEncoding``: ``kN`` lanes per point (one level each),
+``gN`` levels per thread, ``pair`` / ``nopair``
 x-pair merged accesses, ``gxN`` levels per input-gradient thread (``gx0``: all),
 ``fp16`` half-precision table-gradient accumulation.
 """
@@ -55,8 +56,12 @@ def parse_sizes(text: str) -> list[int]:
     return sizes
 
 
-def apply_variant(enc: HashGridEncoding, variant: str) -> None:
-    enc.grad_dtype = torch.float32
+KNOBS = ("cuda_level_lanes", "cuda_levels_per_thread", "cuda_paired", "cuda_dx_levels_per_thread", "grad_dtype")
+
+
+def apply_variant(enc: HashGridEncoding, variant: str, defaults: dict) -> None:
+    for k, v in defaults.items():
+        setattr(enc, k, v)
     if variant == "default":
         return
     for tok in variant.split("+"):
@@ -66,6 +71,8 @@ def apply_variant(enc: HashGridEncoding, variant: str) -> None:
             enc.cuda_paired = False
         elif tok == "fp16":
             enc.grad_dtype = torch.float16
+        elif tok.startswith("k"):
+            enc.cuda_level_lanes = int(tok[1:])
         elif tok.startswith("gx"):
             enc.cuda_dx_levels_per_thread = int(tok[2:])
         elif tok.startswith("g"):
@@ -202,9 +209,10 @@ def main(argv=None) -> int:
 
     rows = []
     ref_cache = {}
+    defaults = {k: getattr(enc, k) for k in KNOBS}
     for n in sizes:
         for variant in args.variants:
-            apply_variant(enc, variant)
+            apply_variant(enc, variant, defaults)
             t = measure(enc, lambda x, p: enc(x), enc.params, n, device, repeats, args.warmup, args.with_dx)
             row = {"n": n, "variant": variant, **t}
             if not args.no_reference and n <= args.reference_max_size:

@@ -17,11 +17,15 @@ configuration. All kernels take ``first`` (offset of the launch's first item, se
 * ``scales``: per-level float32 ``scale_l`` and ``meta``: per-level ``vec4i`` holding
   ``(resolution, offset in entries, entries in the level, hashed flag)``.
 
-Items are scheduled level-major: item ``i`` handles point ``i % n`` on the ``G`` consecutive
-levels of group ``i // n`` (``G = levels_per_thread``), so at any moment the GPU works on the
-tables of ``G`` levels only and those stay resident in L2, while each thread reads or writes
-``G*F`` contiguous floats of the row-major ``[N, L*F]`` output (a full 32-byte sector for
-``G*F = 8``) instead of one scattered ``F``-vector per level.
+Items are scheduled level-major, by groups of ``K*G`` consecutive levels (``K =
+level_lanes``, ``G = levels_per_thread``): the ``K*n`` items of a group are ordered point by
+point, ``K`` consecutive items (lanes of one warp) sharing a point, and the item of lane ``j``
+handles levels ``group*K*G + j + K*t`` for ``t < G``, one after the other. So at any moment the
+GPU works on the tables of ``K*G`` levels only, and those stay resident in L2, while the lanes
+of a point write (forward) or read (backward) ``K*F`` contiguous floats of the row-major
+``[N, L*F]`` output per instruction -- a whole 32-byte sector for ``K*F = 8`` -- instead of
+scattered ``F``-vectors that the L2 would have to merge with the other levels' parts of the
+same sector much later.
 
 CUDA-specific memory instructions live in small native snippets: vector loads through the
 read-only path, streaming (evict-first) stores and loads for the output and its gradient, so
@@ -54,7 +58,8 @@ class KernelConfig(NamedTuple):
     n_dims: int  # D, 2 or 3
     n_features: int  # F, 1, 2, 4 or 8
     interpolation: str  # "linear" or "smoothstep"
-    levels_per_thread: int = 1  # G for the forward and table-gradient kernels
+    levels_per_thread: int = 1  # G: levels one forward / table-gradient item handles in turn
+    level_lanes: int = 1  # K: consecutive items (lanes) that share a point, one level each
     paired: bool = False  # x-pair merged accesses (F <= 2 only)
     half_grad: bool = False  # table gradient of hashed levels accumulated in float16
     dx_levels_per_thread: int = 0  # levels per d/dx item; 0: all levels, no atomics
@@ -288,25 +293,26 @@ def get_kernels(config: KernelConfig) -> Kernels:
     Kernel signatures (after ``first``, see the module docstring):
 
     * ``forward(n, n_levels, x, params: array(V), scales, meta, out: array(V))`` with ``out``
-      the row-major ``[N, L*F]`` output seen as ``N*L`` F-vectors. Items: ``ceil(L/G) * N``.
+      the row-major ``[N, L*F]`` output seen as ``N*L`` F-vectors. Items: ``ceil(L/(K*G))*K*N``.
     * ``backward_params(n, n_levels, x, scales, meta, grad_out: array(V), grad: array(V),
       grad_half: array(VH), half_from_level, half_base)``: adds ``d out / d params`` into
       ``grad`` (float32, all levels below ``half_from_level``) and ``grad_half`` (float16,
       entries from ``half_base`` on, levels from ``half_from_level`` on, when
-      ``config.half_grad``). Items: ``ceil(L/G) * N``.
+      ``config.half_grad``). Items: ``ceil(L/(K*G))*K*N``; items of different level groups
+      touch disjoint table regions.
     * ``backward_x(n, n_levels, x, params, scales, meta, grad_out, grad_x)``: ``grad_x`` is the
       flat ``[N*D]`` input gradient; written when ``dx_levels_per_thread == 0`` (items ``N``),
       accumulated atomically into a zeroed buffer otherwise (items ``ceil(L/Gx) * N``).
     """
-    D, F, interp, G, paired, half_grad, GX = config
+    D, F, interp, G, K, paired, half_grad, GX = config
     if D not in (2, 3):
         raise ValueError(f"n_dims must be 2 or 3, got {D}")
     if F not in (1, 2, 4, 8):
         raise ValueError(f"n_features must be 1, 2, 4 or 8, got {F}")
     if interp not in INTERPOLATIONS:
         raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interp!r}")
-    if G < 1 or GX < 0:
-        raise ValueError("levels_per_thread must be >= 1 and dx_levels_per_thread >= 0")
+    if G < 1 or K < 1 or GX < 0:
+        raise ValueError("levels_per_thread and level_lanes must be >= 1, dx_levels_per_thread >= 0")
     paired = bool(paired) and F <= 2
 
     io = _io(F)
@@ -318,7 +324,8 @@ def get_kernels(config: KernelConfig) -> Kernels:
     NC = 1 << D  # corners per cell
     NH = NC // 2  # x-pairs of corners
     SMOOTH = interp == SMOOTHSTEP
-    module = f"ngp_warp.hashgrid.D{D}F{F}{interp[0]}G{G}p{int(paired)}h{int(half_grad)}x{GX}"
+    KG = K * G  # levels per level group
+    module = f"ngp_warp.hashgrid.D{D}F{F}{interp[0]}G{G}K{K}p{int(paired)}h{int(half_grad)}x{GX}"
 
     @wp.func
     def locate(x: wp.array(dtype=wp.float32), p: int, scale: float):
@@ -402,7 +409,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
 
     @wp.func
     def split_pair(vp: VP, odd_first: bool):
-        """(entry e, entry e+1) of an aligned pair -> (lower-x corner, upper-x corner)."""
+        """(entry e, entry e+1) of an aligned pair -> (entry e + odd_first, the other one)."""
         lo = V(0.0)
         hi = V(0.0)
         if wp.static(F == 1):
@@ -450,16 +457,15 @@ def get_kernels(config: KernelConfig) -> Kernels:
         a0, a1 = corner_terms(g, res, hashed)
         acc = V(0.0)
         if wp.static(paired):
+            # branch-free, so that the compiler can issue every corner's load up front: the
+            # aligned pair holding i0 is always read (16 bytes, one sector); i1 is either its
+            # other half or needs a (predicated) load of its own
             for ch in range(NH):
                 c = 2 * ch
                 i0 = corner_index(a0, a1, c, hashed, size)
                 i1 = corner_index(a0, a1, c + 1, hashed, size)
-                v0 = V(0.0)
-                v1 = V(0.0)
-                if i1 == (i0 ^ wp.uint32(1)):
-                    v0, v1 = split_pair(gather_pair(params, off + (i0 & ~wp.uint32(1))), (i0 & wp.uint32(1)) != 0)
-                else:
-                    v0 = gather(params, off + i0)
+                v0, v1 = split_pair(gather_pair(params, off + (i0 & ~wp.uint32(1))), (i0 & wp.uint32(1)) != 0)
+                if i1 != (i0 ^ wp.uint32(1)):
                     v1 = gather(params, off + i1)
                 acc += corner_weight(w, c) * v0 + corner_weight(w, c + 1) * v1
         else:
@@ -468,7 +474,16 @@ def get_kernels(config: KernelConfig) -> Kernels:
                 acc += corner_weight(w, c) * gather(params, off + i)
         return acc
 
-    @wp.kernel(enable_backward=False, module=module)
+    @wp.func
+    def schedule(item: int, n: int):
+        """item -> (level group, point, lane): lanes are the fastest-varying index."""
+        kn = K * n
+        grp = item // kn
+        r = item - grp * kn
+        p = r // K
+        return grp, p, r - p * K
+
+    @wp.kernel(enable_backward=False, module=module, grid_stride=False)
     def forward(
         first: int,
         n: int,
@@ -479,11 +494,9 @@ def get_kernels(config: KernelConfig) -> Kernels:
         meta: wp.array(dtype=wp.vec4i),
         out: wp.array(dtype=V),
     ):
-        item = first + wp.tid()
-        grp = item // n
-        p = item - grp * n
+        grp, p, lane = schedule(first + wp.tid(), n)
         for j in range(G):
-            level = grp * G + j
+            level = grp * KG + j * K + lane
             if level < n_levels:
                 store(out, p * n_levels + level, encode_level(x, p, params, scales[level], meta[level]))
 
@@ -517,7 +530,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
                 return
         red_pair(grad, e, v)
 
-    @wp.kernel(enable_backward=False, module=module)
+    @wp.kernel(enable_backward=False, module=module, grid_stride=False)
     def backward_params(
         first: int,
         n: int,
@@ -531,12 +544,10 @@ def get_kernels(config: KernelConfig) -> Kernels:
         half_from_level: int,
         half_base: int,
     ):
-        item = first + wp.tid()
-        grp = item // n
-        p = item - grp * n
+        grp, p, lane = schedule(first + wp.tid(), n)
         hb = wp.uint32(half_base)
         for j in range(G):
-            level = grp * G + j
+            level = grp * KG + j * K + lane
             if level < n_levels:
                 go = load_stream(grad_out, p * n_levels + level)
                 m = meta[level]
@@ -609,7 +620,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
             acc[d] = acc[d] * (scale * dw[d])
         return acc
 
-    @wp.kernel(enable_backward=False, module=module)
+    @wp.kernel(enable_backward=False, module=module, grid_stride=False)
     def backward_x(
         first: int,
         n: int,

@@ -10,8 +10,9 @@ from ngp_warp.kernels.occupancy import box_center, box_half, cascade_of, cell_id
 wp.set_module_options({"enable_backward": False})
 
 _FAR = wp.constant(1.0e30)
-# Largest step index a DDA jump may produce (keeps float → int conversions defined).
-_MAX_STEP_INDEX = wp.constant(1.0e9)
+# Loop iterations per ray never exceed this (ends degenerate rays, e.g. near-zero directions
+# whose t range float32 steps cannot resolve); sane rays need far fewer (~1024·2^levels).
+_MAX_ITERS = wp.constant(1 << 24)
 
 
 @wp.func
@@ -67,7 +68,7 @@ def step_at(t: float, step: float, cone: float, max_step: float) -> float:
 # Sample k is the interval [t_k, min(t_k + Δt, t1)], kept when its midpoint's cell (finest
 # cascade containing it) is occupied. From an empty cell the march jumps (DDA) to the first
 # t_k whose midpoint lies past the cell's exit. At most max_per_ray samples per ray.
-# fill = 0: counts[r] = number of samples. fill = 1: write them at offsets[r] .. offsets[r+1]).
+# fill = 0: counts[r] = number of samples. fill = 1: write them at offsets[r] .. offsets[r+1].
 @wp.kernel
 def march_rays(
     first: int,
@@ -122,7 +123,9 @@ def march_rays(
         inv_d = reciprocal(d)
         inv_h = reciprocal(h)
         inv_dt = 1.0 / step
-        while t < t1 and n < cap:
+        iters = int(0)
+        while t < t1 and n < cap and iters < _MAX_ITERS:
+            iters += 1
             dt = step_at(t, step, cone, max_step)
             t_end = wp.min(t + dt, t1)
             p = o + d * (0.5 * (t + t_end))
@@ -155,10 +158,11 @@ def march_rays(
                 t_leave = cell_exit(o, d, inv_d, cell_lo, size)
                 if cone > 0.0:
                     t = t + dt
-                    while t < t1 and t + 0.5 * step_at(t, step, cone, max_step) < t_leave:
+                    while t < t1 and t + 0.5 * step_at(t, step, cone, max_step) < t_leave and iters < _MAX_ITERS:
                         t = t + step_at(t, step, cone, max_step)
+                        iters += 1
                 else:
-                    target = wp.min(wp.ceil((t_leave - t_s) * inv_dt - 0.5), _MAX_STEP_INDEX)
+                    target = wp.min(wp.ceil((t_leave - t_s) * inv_dt - 0.5), float(_MAX_ITERS))
                     k = wp.max(k + 1, int(target))
                     t = t_s + float(k) * dt
     if fill == 0:

@@ -1,6 +1,6 @@
 """ngp-warp: instant-NGP radiance fields whose hot paths are hand-written NVIDIA Warp kernels.
 
-Public API (imported lazily, so ``import ngp_warp`` stays light and works without a GPU):
+Public API (``import ngp_warp`` works without a GPU; kernels compile on first use):
 
 * :class:`HashGridEncoding` -- multiresolution hash-grid encoding (tiny-cuda-nn semantics)
 * :class:`OccupancyGrid`, :func:`ray_marching`, :func:`composite`, :func:`render_rays`
@@ -8,30 +8,19 @@ Public API (imported lazily, so ``import ngp_warp`` stays light and works withou
 * :class:`NGPField` -- hash grid + tiny MLPs
 """
 
-from importlib import import_module
-
 from ngp_warp import _wp
 
 __version__ = "0.1.0"
 
 _wp.init()
 
-_EXPORTS = {
-    "HashGridEncoding": "ngp_warp.encoding",
-    "OccupancyGrid": "ngp_warp.occupancy",
-    "ray_marching": "ngp_warp.raymarch",
-    "composite": "ngp_warp.composite",
-    "render_rays": "ngp_warp.render",
-    "NGPField": "ngp_warp.field",
-}
+# Bound eagerly: the function ``composite`` shares its name with its module, and an eager
+# from-import keeps the package attribute pointing at the function.
+from ngp_warp.composite import composite  # noqa: E402
+from ngp_warp.encoding import HashGridEncoding  # noqa: E402
+from ngp_warp.field import NGPField  # noqa: E402
+from ngp_warp.occupancy import OccupancyGrid  # noqa: E402
+from ngp_warp.raymarch import ray_marching  # noqa: E402
+from ngp_warp.render import render_rays  # noqa: E402
 
-__all__ = sorted(_EXPORTS) + ["__version__"]
-
-
-def __getattr__(name):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'ngp_warp' has no attribute {name!r}")
-    value = getattr(import_module(module), name)
-    globals()[name] = value
-    return value
+__all__ = ["HashGridEncoding", "NGPField", "OccupancyGrid", "composite", "ray_marching", "render_rays", "__version__"]

@@ -38,7 +38,7 @@ def _writable_dir(path: Path) -> Path:
     return path
 
 
-def _train_config(args, device: str):
+def _train_config(args):
     from ngp_warp.trainer import TrainConfig
 
     cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
@@ -63,7 +63,7 @@ def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
         scene = load_scene(scene_path, downscale=args.downscale)
-        trainer = Trainer(scene, config or _train_config(args, device), device=device)
+        trainer = Trainer(scene, config or _train_config(args), device=device)
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
           f"{scene.train.width}x{scene.train.height}, device {trainer.device}", file=sys.stderr)
@@ -97,19 +97,33 @@ def cmd_train(args) -> None:
     _print_metrics(metrics, Path(args.out))
 
 
+def demo_config(device: str, steps: int | None, seconds: float | None, seed: int):
+    """Training settings for the 100×100 demo scene. On the CPU a smaller field, a coarser
+    occupancy grid and a longer step keep 2 cores busy on useful samples (measured: 31 dB
+    after 120 s on 2 cores, see benchmarks/RESULTS.md)."""
+    from ngp_warp.field import FieldConfig
+    from ngp_warp.trainer import TrainConfig
+
+    if steps is None and seconds is None:
+        seconds = 150.0 if device == "cpu" else 30.0
+    if device == "cpu":
+        return TrainConfig(steps=steps, seconds=seconds, seed=seed, target_samples=1 << 15,
+                           grid_resolution=64, steps_per_diagonal=512,
+                           field=FieldConfig(log2_hashmap_size=16, finest_resolution=512.0))
+    return TrainConfig(steps=steps, seconds=seconds, seed=seed, field=FieldConfig(finest_resolution=512.0))
+
+
 def cmd_demo(args) -> None:
     from ngp_warp.scene import write_demo_scene
-    from ngp_warp.trainer import TrainConfig
 
     out = _writable_dir(Path(args.out))
     scene_dir = out / "scene"
     if not (scene_dir / "transforms_train.json").exists():
         print(f"generating the demo scene in {scene_dir}", file=sys.stderr)
         write_demo_scene(scene_dir, seed=args.seed)
-    device = _device(args.device)
-    if args.steps is None and args.seconds is None:
-        args.seconds = 150.0 if device == "cpu" else 30.0
-    config = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
+    config = demo_config(_device(args.device), args.steps, args.seconds, args.seed)
+    if args.target_samples:
+        config.target_samples = args.target_samples
     metrics = _train_and_report(scene_dir, out, args, config=config)
     _print_metrics(metrics, out)
 
@@ -156,7 +170,7 @@ def _parser() -> argparse.ArgumentParser:
         budget.add_argument("--seconds", type=float, help="training wall-clock budget in seconds")
         sp.add_argument("--downscale", type=int, default=1, help="shrink images by this integer factor")
         sp.add_argument("--seed", type=int, default=0)
-        sp.add_argument("--target-samples", type=int, help="samples per batch (default 2^18 CUDA, 2^14 CPU)")
+        sp.add_argument("--target-samples", type=int, help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
         sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
         sp.add_argument("--frames", type=int, default=60, help="orbit video frames")
 

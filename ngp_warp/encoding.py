@@ -145,9 +145,11 @@ class HashGridEncoding(torch.nn.Module):
     only when autograd needs it. The backward itself is not differentiable (no second order).
 
     CUDA scheduling (see ``kernels/hashgrid.py``) is tunable through the attributes
-    ``cuda_levels_per_thread`` (levels per forward/backward item, default ``8 // F``),
-    ``cuda_paired`` (x-pair merged accesses for ``F <= 2``) and ``cuda_dx_levels_per_thread``
-    (levels per input-gradient item; 0: all levels in one item, no atomics).
+    ``cuda_level_lanes`` (K: consecutive lanes sharing a point, one level each; default
+    ``8 // F``, so that they write whole 32-byte sectors), ``cuda_levels_per_thread`` (G:
+    levels each of them handles in turn, default 1), ``cuda_paired`` (x-pair merged accesses
+    for ``F <= 2``) and ``cuda_dx_levels_per_thread`` (levels per input-gradient item; 0: all
+    levels in one item, no atomics).
     """
 
     def __init__(
@@ -217,9 +219,11 @@ class HashGridEncoding(torch.nn.Module):
         # first level accumulated in float16 when grad_dtype is float16: hashed levels only
         self._half_from = next((i for i, h in enumerate(table.hashed) if h), n_levels)
 
-        self.cuda_levels_per_thread = max(1, min(n_levels, 8 // n_features_per_level))
+        self.cuda_levels_per_thread = 1
+        self.cuda_level_lanes = max(1, min(n_levels, 8 // n_features_per_level))
         self.cuda_paired = n_features_per_level <= 2
         self.cuda_dx_levels_per_thread = max(1, min(n_levels, 8 // n_features_per_level))
+        self._cuda_schedule_on_cpu = False  # tests: run the CUDA scheduling code paths on the CPU
 
         self.params = torch.nn.Parameter(
             torch.empty(self.n_params, dtype=torch.float32, device=device).uniform_(-1e-4, 1e-4)
@@ -266,17 +270,19 @@ class HashGridEncoding(torch.nn.Module):
     def _kernels(self, device: str) -> K.Kernels:
         half = self.grad_dtype == torch.float16
         D, F, interp = self.n_input_dims, self.n_features_per_level, self.interpolation
-        if device == "cpu":
-            config = K.KernelConfig(D, F, interp, 1, False, half, 0)
+        if device == "cpu" and not self._cuda_schedule_on_cpu:
+            config = K.KernelConfig(D, F, interp, 1, 1, False, half, 0)
         else:
             config = K.KernelConfig(
                 D,
                 F,
                 interp,
                 int(self.cuda_levels_per_thread),
+                int(self.cuda_level_lanes),
                 bool(self.cuda_paired),
                 half,
-                int(self.cuda_dx_levels_per_thread),
+                # the CPU has no atomics: one item per point there
+                0 if device == "cpu" else int(self.cuda_dx_levels_per_thread),
             )
         return K.get_kernels(config)
 
@@ -297,6 +303,10 @@ class HashGridEncoding(torch.nn.Module):
         vec = dtype if dtype is not None else K._vec(F)
         return _wp.to_wp(t.reshape(-1, F), dtype=vec)
 
+    def _n_items(self, config: K.KernelConfig, n: int) -> int:
+        group = config.levels_per_thread * config.level_lanes
+        return -(-self.n_levels // group) * config.level_lanes * n
+
     def _encode(self, x: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
         n, L, F = x.shape[0], self.n_levels, self.n_features_per_level
         out = torch.empty((n, L * F), dtype=torch.float32, device=x.device)
@@ -304,11 +314,10 @@ class HashGridEncoding(torch.nn.Module):
             return out
         device = _wp.device_of(x)
         k = self._kernels(device)
-        G = k.config.levels_per_thread
         scales, meta = self._level_arrays()
         _wp.launch(
             k.forward,
-            -(-L // G) * n,
+            self._n_items(k.config, n),
             [n, L, _wp.to_wp(x.reshape(-1)), self._entries(_aligned(params.detach())), scales, meta, self._entries(out)],
             device,
         )
@@ -321,7 +330,6 @@ class HashGridEncoding(torch.nn.Module):
             return grad
         device = _wp.device_of(x)
         k = self._kernels(device)
-        G = k.config.levels_per_thread
         scales, meta = self._level_arrays()
         half = None
         half_from, half_base = L, self.offsets[-1]
@@ -330,7 +338,7 @@ class HashGridEncoding(torch.nn.Module):
             half = torch.zeros((self.offsets[-1] - half_base) * F, dtype=torch.float16, device=x.device)
         _wp.launch(
             k.backward_params,
-            -(-L // G) * n,
+            self._n_items(k.config, n),
             [
                 n,
                 L,
@@ -344,7 +352,7 @@ class HashGridEncoding(torch.nn.Module):
                 half_base,
             ],
             device,
-            align=n,  # one block of n items = one level group (disjoint table regions)
+            align=k.config.level_lanes * n,  # a level group's items (disjoint table regions)
         )
         if half is not None:
             grad[half_base * F :].copy_(half)

@@ -16,7 +16,11 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+import warp as wp
+
+from ngp_warp import _wp
 from ngp_warp.encoding import HashGridEncoding
+from ngp_warp.kernels import sh as sh_kernels
 
 
 @dataclass
@@ -52,34 +56,18 @@ def trunc_exp(x: torch.Tensor) -> torch.Tensor:
 
 
 def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
-    """Real spherical harmonics of degree 4 (bands 0..3, 16 values) of unit directions.
+    """Real spherical harmonics of degree 4 (bands 0..3, 16 values) of unit directions, in Warp.
 
-    d: [N, 3] float, unit length. Returns [N, 16] with tiny-cuda-nn's ordering and signs.
+    d: [N, 3] float32 unit vectors (CPU or CUDA). Returns [N, 16] float32 with tiny-cuda-nn's
+    ordering and signs. Directions get no gradient (they come from cameras).
     """
-    x, y, z = d.unbind(-1)
-    xx, yy, zz = x * x, y * y, z * z
-    xy, yz, xz = x * y, y * z, x * z
-    return torch.stack(
-        [
-            torch.full_like(x, 0.28209479177387814),
-            -0.48860251190291987 * y,
-            0.48860251190291987 * z,
-            -0.48860251190291987 * x,
-            1.0925484305920792 * xy,
-            -1.0925484305920792 * yz,
-            0.94617469575755997 * zz - 0.31539156525251999,
-            -1.0925484305920792 * xz,
-            0.54627421529603959 * (xx - yy),
-            0.59004358992664352 * y * (-3.0 * xx + yy),
-            2.8906114426405538 * xy * z,
-            0.45704579946446572 * y * (1.0 - 5.0 * zz),
-            0.3731763325901154 * z * (5.0 * zz - 3.0),
-            0.45704579946446572 * x * (1.0 - 5.0 * zz),
-            1.4453057213202769 * z * (xx - yy),
-            0.59004358992664352 * x * (-xx + 3.0 * yy),
-        ],
-        dim=-1,
-    )
+    if d.ndim != 2 or d.shape[1] != 3:
+        raise ValueError(f"directions must be [N, 3], got {tuple(d.shape)}")
+    d = d.detach().float().contiguous()
+    out = torch.empty(d.shape[0], 16, device=d.device, dtype=torch.float32)
+    device = _wp.device_of(d)
+    _wp.launch(sh_kernels.sh_deg4, d.shape[0], [_wp.to_wp(d, dtype=wp.vec3), _wp.to_wp(out)], device)
+    return out
 
 
 def _mlp(sizes: list[int]) -> nn.Sequential:

@@ -17,7 +17,7 @@ cells. Cells no training camera sees hold ``-1`` and are never occupied.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 import torch
 import warp as wp
@@ -106,14 +106,6 @@ class OccupancyGrid(nn.Module):
         return list(self._aabb_host)
 
     @property
-    def outer_aabb_host(self) -> list[float]:
-        """The coarsest cascade's box (base box scaled by 2^(levels-1)) as 6 Python floats."""
-        lo, hi, s = self._aabb_host[:3], self._aabb_host[3:], 2.0 ** (self.levels - 1)
-        c = [(a + b) / 2 for a, b in zip(lo, hi)]
-        h = [(b - a) / 2 * s for a, b in zip(lo, hi)]
-        return [ci - hi_ for ci, hi_ in zip(c, h)] + [ci + hi_ for ci, hi_ in zip(c, h)]
-
-    @property
     def default_step_size(self) -> float:
         """instant-ngp's marching step: the base box diagonal / 1024 (√3/1024 for the unit cube)."""
         lo, hi = self._aabb_host[:3], self._aabb_host[3:]
@@ -174,7 +166,8 @@ class OccupancyGrid(nn.Module):
                 shape = tuple(values.shape) if isinstance(values, torch.Tensor) else type(values).__name__
                 raise ValueError(f"density_fn must return [{m}] or [{m}, 1] densities, got {shape}")
             values = values.detach().reshape(m).to(torch.float32).contiguous()
-            _wp.launch(K.splat_max, m, [_wp.to_wp(cells), _wp.to_wp(values), _wp.to_wp(self._splat)], device)
+            # Scatter-max into arbitrary cells: one CPU thread (align=m), as CPU atomics are not atomic.
+            _wp.launch(K.splat_max, m, [_wp.to_wp(cells), _wp.to_wp(values), _wp.to_wp(self._splat)], device, align=m)
         _wp.launch(K.ema_update, n, [_wp.to_wp(self._splat), float(ema_decay), _wp.to_wp(self.occs)], device)
         visible = self.occs >= 0
         mean = (self.occs * visible).sum() / visible.sum().clamp(min=1)

@@ -22,7 +22,7 @@ class TrainConfig:
 
     steps: int | None = None            # stop after this many steps ...
     seconds: float | None = None        # ... or after this much training wall-clock
-    target_samples: int | None = None   # samples per batch to hold (2^18 CUDA, 2^14 CPU)
+    target_samples: int | None = None   # samples per batch to hold (2^18 CUDA, 2^15 CPU)
     initial_rays: int = 1024
     max_rays: int = 1 << 18
     lr: float = 1e-2
@@ -72,7 +72,7 @@ class Trainer:
                                   levels=scene.occupancy_levels).to(self.device)
         extent = (aabb[3:] - aabb[:3]).norm().item()
         self.step_size = extent / cfg.steps_per_diagonal
-        self.target_samples = cfg.target_samples or (1 << 18 if self.device.type == "cuda" else 1 << 14)
+        self.target_samples = cfg.target_samples or (1 << 18 if self.device.type == "cuda" else 1 << 15)
         self.n_rays = cfg.initial_rays
         self.optimizer = torch.optim.Adam(
             [

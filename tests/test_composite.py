@@ -147,8 +147,8 @@ def test_cuda_matches_cpu():
     sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays = packed_rays()
     outs, grads = [], []
     for device in ("cpu", "cuda"):
-        s = sigmas.to(device).requires_grad_(True)
-        c = rgbs.to(device).requires_grad_(True)
+        s = sigmas.detach().to(device).requires_grad_(True)
+        c = rgbs.detach().to(device).requires_grad_(True)
         out = composite(s, c, t_starts.to(device), t_ends.to(device), ray_indices.to(device), n_rays, 1e-3,
                         return_weights=True)
         (out[0].sum() + out[1].sum() * 0.5 + out[2].sum() * 0.1 + out[3].sum()).backward()

@@ -68,6 +68,21 @@ def test_matches_float64_reference(cfg):
         assert torch.allclose(one(x.contiguous()), y[:, :F], rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("lanes,levels,paired", [(4, 1, True), (3, 2, True), (2, 3, False), (8, 1, True)])
+@pytest.mark.parametrize("cfg", [CONFIGS[0], CONFIGS[4], CONFIGS[8]], ids=lambda c: f"D{c[0]}F{c[2]}")
+def test_cuda_schedules_on_cpu(cfg, lanes, levels, paired):
+    """The GPU's scheduling variants (lanes per point, levels per item, x-pairs) on the CPU."""
+    D, L, F, T, base, scale, interp, n, (lo, hi) = cfg
+    enc = HashGridEncoding(D, L, F, T, base, scale, interp)
+    enc._cuda_schedule_on_cpu = True
+    enc.cuda_level_lanes, enc.cuda_levels_per_thread, enc.cuda_paired = lanes, levels, paired
+    with torch.no_grad():
+        enc.params.uniform_(-1.0, 1.0)
+    x = torch.rand(n, D) * (hi - lo) + lo
+    (y, gp, gx), (y64, gp64, gx64) = run_both(enc, x)
+    assert rel_err(y, y64) < 2e-6 and rel_err(gp, gp64) < 2e-6 and rel_err(gx, gx64) < 1e-5
+
+
 def test_default_level_table_matches_tcnn():
     """The NeRF configuration: 3 dense levels (16^3, 32^3, 64^3), then 13 of 2^19 entries.
 
@@ -242,9 +257,9 @@ def test_cuda_device_mismatch_raises():
 
 CUDA_VARIANTS = [
     {},
-    {"cuda_levels_per_thread": 1, "cuda_paired": False, "cuda_dx_levels_per_thread": 0},
-    {"cuda_levels_per_thread": 3, "cuda_paired": True, "cuda_dx_levels_per_thread": 2},
-    {"cuda_levels_per_thread": 8, "cuda_paired": False, "cuda_dx_levels_per_thread": 5},
+    {"cuda_level_lanes": 1, "cuda_levels_per_thread": 1, "cuda_paired": False, "cuda_dx_levels_per_thread": 0},
+    {"cuda_level_lanes": 2, "cuda_levels_per_thread": 3, "cuda_paired": True, "cuda_dx_levels_per_thread": 2},
+    {"cuda_level_lanes": 3, "cuda_levels_per_thread": 2, "cuda_paired": False, "cuda_dx_levels_per_thread": 5},
 ]
 
 
@@ -268,7 +283,7 @@ def test_cuda_matches_cpu(cfg, variant):
     g = torch.randn(n, L * F)
     outs = []
     for enc, dev in ((cpu, "cpu"), (gpu, "cuda")):
-        xd = x.to(dev).requires_grad_()
+        xd = x.to(dev).detach().requires_grad_()
         y = enc(xd)
         y.backward(g.to(dev))
         outs.append((y.cpu(), enc.params.grad.cpu(), xd.grad.cpu()))

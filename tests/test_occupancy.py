@@ -159,10 +159,14 @@ def test_invalid_construction_raises_value_error(args):
 @pytest.mark.cuda
 def test_cuda_matches_cpu():
     grids = [OccupancyGrid(AABB, resolution=16, levels=2).to(d) for d in ("cpu", "cuda")]
-    for step in (0, 300):
+
+    def update(step):
         for grid in grids:
-            torch.manual_seed(step)
+            torch.manual_seed(step)  # same kernel seed on both devices
             grid.update(step, lambda p: blob_density(p.cpu()).to(p.device))
+
+    update(0)
     torch.testing.assert_close(grids[0].occs, grids[1].occs.cpu(), rtol=1e-5, atol=1e-6)
-    mismatch = (grids[0].occupied() != grids[1].occupied().cpu()).float().mean()
-    assert mismatch < 1e-3
+    grids[1].load_state_dict(grids[0].state_dict())  # same bitfield, so the same cells are drawn
+    update(300)
+    torch.testing.assert_close(grids[0].occs, grids[1].occs.cpu(), rtol=1e-5, atol=1e-6)

@@ -84,7 +84,7 @@ def test_cone_angle_matches_dense_sampler():
 
 def test_misses_emit_nothing_and_inside_rays_start_at_near():
     grid = OccupancyGrid(torch.tensor(AABB), resolution=8)  # fresh grid: everything occupied
-    rays_o = torch.tensor([[0.0, 3.0, 0.0], [0.0, 3.0, 0.0], [0.2, -0.3, 0.1], [0.2, -0.3, 0.1], [0.0, 0.0, 0.0]])
+    rays_o = torch.tensor([[0.0, 3.0, 0.0], [0.0, 3.0, 0.0], [0.2, -0.3, 0.1234], [0.2, -0.3, 0.1234], [0.0, 0.0, 0.0]])
     rays_d = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 0.0]])
     samples = ray_marching(rays_o, rays_d, grid, near=0.1, step_size=0.01)
     counts = samples.ray_offsets.diff()
