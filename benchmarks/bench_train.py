@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ngp_warp.data import load_scene
-from ngp_warp.evaluate import test_renders
+from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.metrics import psnr
 from ngp_warp.trainer import TrainConfig, Trainer
 
@@ -83,7 +83,7 @@ def main() -> None:
             torch.cuda.synchronize(dev)
         ms = 1000 * (trainer.train_seconds - t0) / max(trainer.step_count - steps0, 1)
         start = time.perf_counter()
-        scores = [psnr(out["rgb"], gt) for _, out, gt in test_renders(trainer, every=args.test_every)]
+        scores = [psnr(out["rgb"], gt) for _, out, gt in iter_test_renders(trainer, every=args.test_every)]
         row = {
             "seconds": mark, "train_seconds": trainer.train_seconds, "steps": trainer.step_count,
             "psnr": float(np.mean(scores)), "n_test": len(scores), "ms_per_step": ms,

@@ -323,6 +323,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
     VD = wp.types.vector(length=D, dtype=wp.float32)
     NC = 1 << D  # corners per cell
     NH = NC // 2  # x-pairs of corners
+    VI = wp.types.vector(length=NC, dtype=wp.uint32)
     SMOOTH = interp == SMOOTHSTEP
     KG = K * G  # levels per level group
     module = f"ngp_warp.hashgrid.D{D}F{F}{interp[0]}G{G}K{K}p{int(paired)}h{int(half_grad)}x{GX}"
@@ -347,54 +348,53 @@ def get_kernels(config: KernelConfig) -> Kernels:
         return g, w, dw
 
     @wp.func
-    def corner_terms(g: VU, res: wp.uint32, hashed: int):
-        """Per-dim index contributions of the lower (a0) and upper (a1) corner."""
+    def corner_indices(g: VU, res: wp.uint32, size: wp.uint32, hashed: int):
+        """Entry indices (within the level) of the 2^D corners; bit d of c: upper along dim d.
+
+        Branch-free in the common case, so that the compiler can issue all the corners' loads
+        back to back: hashed levels XOR ``coord_d * prime_d``, dense ones add ``coord_d *
+        res^d``, both in wrapping uint32. The table size is a power of two except on some
+        dense levels, whose rare out-of-table indices (cells on the upper faces, points
+        outside [0, 1]) take tcnn's ``index % size`` in a separate pass.
+        """
+        is_hashed = hashed != 0
+        # per-dim multiplier: the hash prime or the dense stride (the x prime is 1)
+        m1 = wp.where(is_hashed, _P1, res)
         a0 = VU()
         a1 = VU()
-        if hashed != 0:
-            a0[0] = g[0]
-            a1[0] = g[0] + wp.uint32(1)
-            a0[1] = g[1] * _P1
-            a1[1] = a0[1] + _P1
-            if wp.static(D == 3):
-                a0[2] = g[2] * _P2
-                a1[2] = a0[2] + _P2
-        else:
-            stride = wp.uint32(1)
-            for d in range(D):
-                a0[d] = g[d] * stride
-                a1[d] = a0[d] + stride
-                stride = stride * res
-        return a0, a1
-
-    @wp.func
-    def corner_index(a0: VU, a1: VU, c: int, hashed: int, size: wp.uint32):
-        """Entry index (within the level) of corner c (bit d of c: upper along dim d)."""
-        t0 = a0[0]
-        if (c & 1) != 0:
-            t0 = a1[0]
-        t1 = a0[1]
-        if (c & 2) != 0:
-            t1 = a1[1]
-        idx = wp.uint32(0)
+        a0[0] = g[0]
+        a1[0] = g[0] + wp.uint32(1)
+        a0[1] = g[1] * m1
+        a1[1] = a0[1] + m1
         if wp.static(D == 3):
-            t2 = a0[2]
-            if (c & 4) != 0:
-                t2 = a1[2]
-            if hashed != 0:
-                idx = (t0 ^ t1 ^ t2) & (size - wp.uint32(1))
-            else:
-                idx = t0 + t1 + t2
-        else:
-            if hashed != 0:
-                idx = (t0 ^ t1) & (size - wp.uint32(1))
-            else:
-                idx = t0 + t1
-        if hashed == 0:  # tcnn: index % hashmap_size
-            if (size & (size - wp.uint32(1))) == wp.uint32(0):
-                idx = idx & (size - wp.uint32(1))
-            elif idx >= size:  # only for points outside [0, 1]
-                idx = idx % size
+            m2 = wp.where(is_hashed, _P2, res * res)
+            a0[2] = g[2] * m2
+            a1[2] = a0[2] + m2
+        mask = size - wp.uint32(1)
+        folded = is_hashed or (size & mask) == wp.uint32(0)  # index & mask == index % size
+        if not folded:
+            mask = wp.uint32(0xFFFFFFFF)
+        idx = VI()
+        for c in range(NC):
+            t0 = a0[0]
+            if (c & 1) != 0:
+                t0 = a1[0]
+            t1 = a0[1]
+            if (c & 2) != 0:
+                t1 = a1[1]
+            h = t0 ^ t1
+            s = t0 + t1
+            if wp.static(D == 3):
+                t2 = a0[2]
+                if (c & 4) != 0:
+                    t2 = a1[2]
+                h = h ^ t2
+                s = s + t2
+            idx[c] = wp.where(is_hashed, h, s) & mask
+        if not folded:
+            for c in range(NC):
+                if idx[c] >= size:
+                    idx[c] = idx[c] % size
         return idx
 
     @wp.func
@@ -454,24 +454,22 @@ def get_kernels(config: KernelConfig) -> Kernels:
         size = wp.uint32(m[2])
         hashed = m[3]
         g, w, dw = locate(x, p, scale)
-        a0, a1 = corner_terms(g, res, hashed)
+        idx = corner_indices(g, res, size, hashed)
         acc = V(0.0)
         if wp.static(paired):
-            # branch-free, so that the compiler can issue every corner's load up front: the
-            # aligned pair holding i0 is always read (16 bytes, one sector); i1 is either its
-            # other half or needs a (predicated) load of its own
+            # the aligned pair holding i0 is always read (16 bytes, one sector); i1 is either
+            # its other half or needs a (predicated) load of its own
             for ch in range(NH):
                 c = 2 * ch
-                i0 = corner_index(a0, a1, c, hashed, size)
-                i1 = corner_index(a0, a1, c + 1, hashed, size)
+                i0 = idx[c]
+                i1 = idx[c + 1]
                 v0, v1 = split_pair(gather_pair(params, off + (i0 & ~wp.uint32(1))), (i0 & wp.uint32(1)) != 0)
                 if i1 != (i0 ^ wp.uint32(1)):
                     v1 = gather(params, off + i1)
                 acc += corner_weight(w, c) * v0 + corner_weight(w, c + 1) * v1
         else:
             for c in range(NC):
-                i = corner_index(a0, a1, c, hashed, size)
-                acc += corner_weight(w, c) * gather(params, off + i)
+                acc += corner_weight(w, c) * gather(params, off + idx[c])
         return acc
 
     @wp.func
@@ -557,12 +555,12 @@ def get_kernels(config: KernelConfig) -> Kernels:
                 hashed = m[3]
                 use_half = level >= half_from_level
                 g, w, dw = locate(x, p, scales[level])
-                a0, a1 = corner_terms(g, res, hashed)
+                idx = corner_indices(g, res, size, hashed)
                 if wp.static(paired):
                     for ch in range(NH):
                         c = 2 * ch
-                        i0 = corner_index(a0, a1, c, hashed, size)
-                        i1 = corner_index(a0, a1, c + 1, hashed, size)
+                        i0 = idx[c]
+                        i1 = idx[c + 1]
                         g0 = corner_weight(w, c) * go
                         g1 = corner_weight(w, c + 1) * go
                         if i1 == (i0 ^ wp.uint32(1)):
@@ -573,8 +571,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
                             scatter(grad, grad_half, use_half, off + i1, hb, g1)
                 else:
                     for c in range(NC):
-                        i = corner_index(a0, a1, c, hashed, size)
-                        scatter(grad, grad_half, use_half, off + i, hb, corner_weight(w, c) * go)
+                        scatter(grad, grad_half, use_half, off + idx[c], hb, corner_weight(w, c) * go)
 
     @wp.func
     def dot_f(a: V, b: V):
@@ -598,11 +595,10 @@ def get_kernels(config: KernelConfig) -> Kernels:
         size = wp.uint32(m[2])
         hashed = m[3]
         g, w, dw = locate(x, p, scale)
-        a0, a1 = corner_terms(g, res, hashed)
+        idx = corner_indices(g, res, size, hashed)
         acc = VD()
         for c in range(NC):
-            i = corner_index(a0, a1, c, hashed, size)
-            s = dot_f(go, gather(params, off + i))
+            s = dot_f(go, gather(params, off + idx[c]))
             for d in range(D):
                 # d weight(c) / d w[d]: the other dims' factors, signed by corner bit d
                 wd = float(1.0)

@@ -30,7 +30,7 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
 
-def test_renders(trainer: Trainer, every: int = 1):
+def iter_test_renders(trainer: Trainer, every: int = 1):
     """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th test view,
     rendered and composited on white."""
     split = trainer.scene.test
@@ -47,7 +47,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     per_image = []
     bar = Progress("eval", total=len(trainer.scene.test.names), enabled=show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
-        for name, out, gt in test_renders(trainer):
+        for name, out, gt in iter_test_renders(trainer):
             stem = Path(name).stem
             p, s = psnr(out["rgb"], gt), ssim(out["rgb"], gt)
             per_image.append({"image": name, "psnr": p, "ssim": s})

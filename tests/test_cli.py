@@ -1,0 +1,85 @@
+"""Smoke tests of the ngp-warp command, including its one-line errors on bad input."""
+
+import json
+
+import pytest
+
+from ngp_warp import _wp
+from ngp_warp.cli import main
+from ngp_warp.scene import write_demo_scene
+
+FAST = ["--device", "cpu", "--quiet", "--target-samples", "4096"]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "scene"
+    write_demo_scene(path, width=24, height=24, n_train=12, n_test=2, supersample=1)
+    return path
+
+
+def one_line_error(capsys, prefix="ngp-warp: error: "):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and err[-1].startswith(prefix), err
+    assert not any("Traceback" in line for line in err)
+    return err[-1]
+
+
+def test_train_eval_render(scene, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", str(scene), "--out", str(out), "--steps", "20", "--frames", "3", *FAST]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("psnr", "ssim", "train_seconds", "steps", "per_image"):
+        assert key in metrics
+    assert metrics["steps"] == 20 and len(metrics["per_image"]) == 2
+    assert sorted(p.name for p in (out / "renders").iterdir()) == ["r_0.png", "r_1.png"]
+    assert len(list((out / "depth").iterdir())) == 2
+    assert any(p.name.startswith("orbit.") for p in out.iterdir())
+    assert not [p for p in out.rglob("*") if "partial" in p.name]
+
+    assert main(["eval", str(out), "--device", "cpu", "--quiet"]) == 0
+    assert "PSNR" in capsys.readouterr().out
+    assert main(["render", str(out), "--video", "spin.gif", "--frames", "2", "--device", "cpu", "--quiet"]) == 0
+    assert (out / "spin.gif").stat().st_size > 0
+
+    assert main(["train", str(scene), "--out", str(out), "--resume", "--steps", "5", "--no-video", *FAST]) == 0
+    assert json.loads((out / "metrics.json").read_text())["steps"] == 25
+
+
+def test_demo_runs_end_to_end(tmp_path):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--steps", "10", "--no-video", *FAST]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["test_split"] == "test" and metrics["n_test_images"] > 0
+    assert (out / "scene" / "transforms_train.json").exists()
+
+
+def test_missing_scene_is_one_line(tmp_path, capsys):
+    assert main(["train", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--steps", "1", *FAST]) == 2
+    assert "nope" in one_line_error(capsys)
+
+
+def test_malformed_transforms_is_one_line(tmp_path, capsys):
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "transforms_train.json").write_text("{not json")
+    assert main(["train", str(tmp_path / "bad"), "--out", str(tmp_path / "o"), "--steps", "1", *FAST]) == 2
+    assert "transforms_train.json" in one_line_error(capsys)
+
+
+def test_unwritable_output_is_one_line(scene, tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["train", str(scene), "--out", str(blocker / "sub"), "--steps", "1", *FAST]) == 2
+    assert "not writable" in one_line_error(capsys)
+
+
+def test_eval_without_checkpoint_is_one_line(tmp_path, capsys):
+    assert main(["eval", str(tmp_path), "--device", "cpu"]) == 2
+    assert "no checkpoint" in one_line_error(capsys)
+
+
+def test_cuda_request_without_gpu_is_one_line(scene, tmp_path, capsys):
+    if _wp.cuda_available():
+        pytest.skip("this machine has a GPU")
+    assert main(["train", str(scene), "--out", str(tmp_path / "o"), "--device", "cuda", "--quiet"]) == 2
+    assert "no CUDA GPU" in one_line_error(capsys)
