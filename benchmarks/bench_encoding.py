@@ -1,7 +1,7 @@
 """Throughput of the hash-grid encoding: forward, backward and forward+backward.
 
     python benchmarks/bench_encoding.py --device cuda --sizes 2^16,2^18,2^20,2^21,2^22
-    python benchmarks/bench_encoding.py --device cuda --sizes 2^21 --variants default g1 g8 nopair fp16
+    python benchmarks/bench_encoding.py --device cuda --sizes 2^21 --variants default k2 k8 nopair fp16
     python benchmarks/bench_encoding.py --device cpu --sizes 2^12,2^14 --repeats 3
 
 Default configuration: the NeRF one (D=3, L=16, F=2, T=2^19, base 16, per-level scale 2),
@@ -18,12 +18,14 @@ spatially coherent). Columns, per size and variant, in million points per second
 * ``ref`` / ``x``: the pure-torch reference (``ngp_warp/_reference/encoding.py``) in float32 on
   the same device, same run, and the speed-up of the Warp kernels over it.
 
-Times are medians over ``--repeats`` calls after warm-up: CUDA events around each call on a
-GPU, ``perf_counter`` on the CPU. Variants (``--variants``; tokens joined by ``+``) set the
+Times are medians over ``--repeats`` batches of ``--inner`` back-to-back calls after warm-up
+(CUDA events around each batch on a GPU, so that the host-side cost of a call overlaps the
+GPU work of the previous ones as in training; ``perf_counter`` on the CPU); the reference
+is timed the same way, over fewer batches. Variants (``--variants``; tokens joined by ``+``) set the
 CUDA scheduling knobs of ``HashGridEncoding``: ``kN`` lanes per point (one level each),
-``gN`` levels per thread, ``pair`` / ``nopair``
-x-pair merged accesses, ``gxN`` levels per input-gradient thread (``gx0``: all),
-``fp16`` half-precision table-gradient accumulation.
+``gN`` levels per thread, ``pair`` / ``nopair`` x-pair merged table-gradient reductions,
+``gxN`` levels per input-gradient thread (``gx0``: all), ``fp16`` half-precision
+table-gradient accumulation.
 """
 
 from __future__ import annotations
@@ -56,7 +58,13 @@ def parse_sizes(text: str) -> list[int]:
     return sizes
 
 
-KNOBS = ("cuda_level_lanes", "cuda_levels_per_thread", "cuda_paired", "cuda_dx_levels_per_thread", "grad_dtype")
+KNOBS = (
+    "cuda_level_lanes",
+    "cuda_levels_per_thread",
+    "cuda_paired",
+    "cuda_dx_levels_per_thread",
+    "grad_dtype",
+)
 
 
 def apply_variant(enc: HashGridEncoding, variant: str, defaults: dict) -> None:
@@ -81,8 +89,13 @@ def apply_variant(enc: HashGridEncoding, variant: str, defaults: dict) -> None:
             raise SystemExit(f"unknown variant token {tok!r}")
 
 
-def timer(device: torch.device, fn, repeats: int, warmup: int) -> float:
-    """Median seconds of one call of ``fn``."""
+def timer(device: torch.device, fn, repeats: int, warmup: int, inner: int) -> float:
+    """Median seconds per call of ``fn``, timed over batches of ``inner`` back-to-back calls.
+
+    On a GPU the calls of a batch are queued back to back between two CUDA events, so that the
+    host's per-call overhead (Python, argument wrapping, launch) overlaps the GPU work as in a
+    training loop instead of being counted as idle GPU time.
+    """
     for _ in range(warmup):
         fn()
     times = []
@@ -92,19 +105,21 @@ def timer(device: torch.device, fn, repeats: int, warmup: int) -> float:
             start = torch.cuda.Event(enable_timing=True)
             end = torch.cuda.Event(enable_timing=True)
             start.record()
-            fn()
+            for _ in range(inner):
+                fn()
             end.record()
             end.synchronize()
-            times.append(start.elapsed_time(end) * 1e-3)
+            times.append(start.elapsed_time(end) * 1e-3 / inner)
     else:
         for _ in range(repeats):
             t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
+            for _ in range(inner):
+                fn()
+            times.append((time.perf_counter() - t0) / inner)
     return statistics.median(times)
 
 
-def measure(enc, encode, params, n: int, device, repeats: int, warmup: int, with_dx: bool) -> dict:
+def measure(enc, encode, params, n: int, device, repeats: int, warmup: int, inner: int, with_dx: bool) -> dict:
     """Times of fwd / bwd / f+b (and bwdx) for ``encode(x, params)`` on two alternating inputs."""
     D = enc.n_input_dims
     xs = [torch.rand(n, D, device=device) for _ in range(2)]
@@ -129,9 +144,9 @@ def measure(enc, encode, params, n: int, device, repeats: int, warmup: int, with
         torch.autograd.grad(encode(next_x(), params), params, g)
 
     out = {
-        "fwd_s": timer(device, fwd, repeats, warmup),
-        "bwd_s": timer(device, bwd, repeats, warmup),
-        "fb_s": timer(device, fwd_bwd, repeats, warmup),
+        "fwd_s": timer(device, fwd, repeats, warmup, inner),
+        "bwd_s": timer(device, bwd, repeats, warmup, inner),
+        "fb_s": timer(device, fwd_bwd, repeats, warmup, inner),
     }
     del ys
     if with_dx:
@@ -142,7 +157,7 @@ def measure(enc, encode, params, n: int, device, repeats: int, warmup: int, with
             state["i"] ^= 1
             torch.autograd.grad(ys[state["i"]], xg[state["i"]], g, retain_graph=True)
 
-        out["bwdx_s"] = timer(device, bwdx, repeats, warmup)
+        out["bwdx_s"] = timer(device, bwdx, repeats, warmup, inner)
     return out
 
 
@@ -152,6 +167,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default=None, help="comma-separated N, e.g. 2^16,2^21 or 65536")
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--inner", type=int, default=None, help="calls per timed batch (GPU default 5, CPU 1)")
     ap.add_argument("--variants", nargs="+", default=["default"])
     ap.add_argument("--dims", type=int, default=3)
     ap.add_argument("--levels", type=int, default=16)
@@ -168,8 +184,10 @@ def main(argv=None) -> int:
 
     device = torch.device(args.device)
     is_cuda = device.type == "cuda"
-    sizes = parse_sizes(args.sizes) if args.sizes else ([2**k for k in (16, 18, 20, 21, 22)] if is_cuda else [2**12, 2**14])
+    default_sizes = [2**k for k in (16, 18, 20, 21, 22)] if is_cuda else [2**12, 2**14]
+    sizes = parse_sizes(args.sizes) if args.sizes else default_sizes
     repeats = args.repeats or (20 if is_cuda else 3)
+    inner = args.inner or (5 if is_cuda else 1)
     enc = HashGridEncoding(
         args.dims,
         args.levels,
@@ -203,9 +221,11 @@ def main(argv=None) -> int:
             "interpolation": enc.interpolation,
         },
         "command": " ".join(sys.argv),
+        "repeats": repeats,
+        "inner": inner,
     }
     print(f"# {header['device']}  torch {header['torch']}  warp {header['warp']}  commit {commit}  {header['date']}")
-    print(f"# D={D} L={L} F={F} T=2^{enc.log2_hashmap_size} n_params={enc.n_params}  repeats={repeats}")
+    print(f"# D={D} L={L} F={F} T=2^{enc.log2_hashmap_size} n_params={enc.n_params}  repeats={repeats} x {inner} calls")
 
     rows = []
     ref_cache = {}
@@ -213,7 +233,7 @@ def main(argv=None) -> int:
     for n in sizes:
         for variant in args.variants:
             apply_variant(enc, variant, defaults)
-            t = measure(enc, lambda x, p: enc(x), enc.params, n, device, repeats, args.warmup, args.with_dx)
+            t = measure(enc, lambda x, p: enc(x), enc.params, n, device, repeats, args.warmup, inner, args.with_dx)
             row = {"n": n, "variant": variant, **t}
             if not args.no_reference and n <= args.reference_max_size:
                 if n not in ref_cache:
@@ -226,6 +246,7 @@ def main(argv=None) -> int:
                         device,
                         max(3, repeats // 4),
                         1,
+                        inner,
                         False,
                     )
                 row.update({f"ref_{k}": v for k, v in ref_cache[n].items()})

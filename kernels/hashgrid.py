@@ -31,11 +31,12 @@ CUDA-specific memory instructions live in small native snippets: vector loads th
 read-only path, streaming (evict-first) stores and loads for the output and its gradient, so
 that they do not push the tables out of L2, and vector reductions (``red.global.v2/v4.f32``,
 sm_90) for the table gradient, one per corner instead of one per feature. With ``paired``,
-the two corners of a cell that differ only in x are handled by one 16-byte access whenever
-they fall into the same aligned pair of table entries (for hashed levels: whenever the cell's
-x coordinate is even, since the x prime is 1). On the CPU the snippets fall back to plain
-C++; CPU launches of the table-gradient kernel must give each thread whole level groups (the
-additions there are not atomic).
+the table gradient of the two corners of a cell that differ only in x is added by one 16-byte
+reduction whenever they fall into the same aligned pair of table entries (for hashed levels:
+whenever the cell's x coordinate is even, since the x prime is 1). The corner indices are
+computed without branches, so that the forward issues all 2^D loads of a level back to back.
+On the CPU the snippets fall back to plain C++; CPU launches of the table-gradient kernel must
+give each thread whole level groups (the additions there are not atomic).
 """
 
 import functools
@@ -60,7 +61,7 @@ class KernelConfig(NamedTuple):
     interpolation: str  # "linear" or "smoothstep"
     levels_per_thread: int = 1  # G: levels one forward / table-gradient item handles in turn
     level_lanes: int = 1  # K: consecutive items (lanes) that share a point, one level each
-    paired: bool = False  # x-pair merged accesses (F <= 2 only)
+    paired: bool = False  # x-pair merged table-gradient reductions (F <= 2 only)
     half_grad: bool = False  # table gradient of hashed levels accumulated in float16
     dx_levels_per_thread: int = 0  # levels per d/dx item; 0: all levels, no atomics
 
@@ -92,7 +93,7 @@ def _load_snippet(n, arr, cache):
         lhs = regs if w == 1 else "{" + regs + "}"
         lines.append(f'asm("ld.global.{cache}{vec}.f32 {lhs}, [%{w}];" : {outs} : "l"(q + {k}));')
     lines.append("#else")
-    lines.append(f"const float* v = q;")
+    lines.append("const float* v = q;")
     lines.append("#endif")
     if n == 1:
         lines.append("return v[0];")
@@ -122,14 +123,14 @@ def _store_snippet(n):
     return "\n".join(lines) + "\n"
 
 
-def _red_snippet(n):
-    """C++ body adding ``v`` (``n`` floats) at float offset ``e * n`` of ``g``.
+def _red_snippet(n, stride=None):
+    """C++ body adding ``v`` (``n`` floats) at float offset ``e * stride`` (default ``n``) of ``g``.
 
     sm_90 and later: vector reductions of up to 4 floats; older GPUs: one atomic per float;
     CPU: plain (non-atomic) additions.
     """
     vals = ["v"] if n == 1 else [f"v.c[{i}]" for i in range(n)]
-    lines = [f"float* q = reinterpret_cast<float*>(g.data) + (size_t)e * {n};"]
+    lines = [f"float* q = reinterpret_cast<float*>(g.data) + (size_t)e * {stride or n};"]
     lines.append("#if defined(__CUDA_ARCH__)")
     lines.append("#if __CUDA_ARCH__ >= 900")
     for k in range(0, n, 4):
@@ -151,13 +152,13 @@ def _red_snippet(n):
     return "\n".join(lines) + "\n"
 
 
-def _red_half_snippet(n):
-    """C++ body adding ``v`` (``n`` floats, rounded to half) at half offset ``e * n`` of ``g``.
+def _red_half_snippet(n, stride=None):
+    """C++ body adding ``v`` (``n`` floats, rounded to half) at half offset ``e * stride`` of ``g``.
 
     CUDA: packed ``f16x2`` reductions (vectors of up to 4 of them on sm_90).
     """
     vals = ["v"] if n == 1 else [f"v.c[{i}]" for i in range(n)]
-    lines = [f"wp::half* q = reinterpret_cast<wp::half*>(g.data) + (size_t)e * {n};"]
+    lines = [f"wp::half* q = reinterpret_cast<wp::half*>(g.data) + (size_t)e * {stride or n};"]
     lines.append("#if defined(__CUDA_ARCH__)")
     if n == 1:
         lines.append("unsigned short h;")
@@ -168,18 +169,20 @@ def _red_half_snippet(n):
         lines.append(f"unsigned int h[{n2}];")
         for i in range(n2):
             # cvt.rn.f16x2.f32 d, a, b puts a in the upper and b in the lower half
-            lines.append(f'asm("cvt.rn.f16x2.f32 %0, %1, %2;" : "=r"(h[{i}]) : "f"({vals[2 * i + 1]}), "f"({vals[2 * i]}));')
+            hi, lo = vals[2 * i + 1], vals[2 * i]
+            lines.append(f'asm("cvt.rn.f16x2.f32 %0, %1, %2;" : "=r"(h[{i}]) : "f"({hi}), "f"({lo}));')
         lines.append("#if __CUDA_ARCH__ >= 900")
         for k in range(0, n2, 4):
             w = min(4, n2 - k)
             ins = ", ".join(f'"r"(h[{k + i}])' for i in range(w))
             if w == 1:
-                lines.append(f'asm volatile("red.global.add.noftz.f16x2 [%0], %1;" :: "l"(q + {2 * k}), {ins} : "memory");')
+                lines.append(
+                    f'asm volatile("red.global.add.noftz.f16x2 [%0], %1;" :: "l"(q + {2 * k}), {ins} : "memory");'
+                )
             else:
                 rhs = "{" + _regs(w, 1) + "}"
-                lines.append(
-                    f'asm volatile("red.global.v{w}.f16x2.add.noftz [%0], {rhs};" :: "l"(q + {2 * k}), {ins} : "memory");'
-                )
+                red = f"red.global.v{w}.f16x2.add.noftz [%0], {rhs};"
+                lines.append(f'asm volatile("{red}" :: "l"(q + {2 * k}), {ins} : "memory");')
         lines.append("#else")
         for i in range(n2):
             lines.append(
@@ -218,7 +221,6 @@ class _IO(NamedTuple):
     V: type  # F floats
     VP: type  # 2F floats (an x-pair of entries)
     gather: object  # (params: array(V), e) -> V, read-only path
-    gather_pair: object  # (params: array(V), e) -> VP, entries e and e+1
     load_stream: object  # (a: array(V), e) -> V, evict-first
     store: object  # (o: array(V), e, v: V), evict-first
     red: object  # (g: array(V), e, v: V)
@@ -235,14 +237,12 @@ def _io(n_features):
     pair_ok = 2 * F <= 4
 
     s_gather = _load_snippet(F, "p", "nc")
-    # pair helpers: 2F floats starting at entry e (float offset e * F)
-    s_gather_pair = _load_snippet(2 * F, "p", "nc").replace(f"* {2 * F};", f"* {F};", 1)
     s_stream = _load_snippet(F, "a", "cs")
     s_store = _store_snippet(F)
     s_red = _red_snippet(F)
-    s_red_pair = _red_snippet(2 * F).replace(f"* {2 * F};", f"* {F};", 1)
+    s_red_pair = _red_snippet(2 * F, F)  # entries e and e + 1
     s_red_half = _red_half_snippet(F)
-    s_red_half_pair = _red_half_snippet(2 * F).replace(f"* {2 * F};", f"* {F};", 1)
+    s_red_half_pair = _red_half_snippet(2 * F, F)
 
     @wp.func_native(s_gather)
     def gather(p: wp.array(dtype=V), e: wp.uint32) -> V: ...
@@ -259,11 +259,8 @@ def _io(n_features):
     @wp.func_native(s_red_half)
     def red_half(g: wp.array(dtype=VH), e: wp.uint32, v: V): ...
 
-    gather_pair = red_pair = red_half_pair = None
+    red_pair = red_half_pair = None
     if pair_ok:
-
-        @wp.func_native(s_gather_pair)
-        def gather_pair(p: wp.array(dtype=V), e: wp.uint32) -> VP: ...
 
         @wp.func_native(s_red_pair)
         def red_pair(g: wp.array(dtype=V), e: wp.uint32, v: VP): ...
@@ -271,7 +268,7 @@ def _io(n_features):
         @wp.func_native(s_red_half_pair)
         def red_half_pair(g: wp.array(dtype=VH), e: wp.uint32, v: VP): ...
 
-    return _IO(V, VP, gather, gather_pair, load_stream, store, red, red_pair, red_half, red_half_pair)
+    return _IO(V, VP, gather, load_stream, store, red, red_pair, red_half, red_half_pair)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -317,7 +314,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
 
     io = _io(F)
     V, VP, VH = io.V, io.VP, _hvec(F)
-    gather, gather_pair, load_stream, store = io.gather, io.gather_pair, io.load_stream, io.store
+    gather, load_stream, store = io.gather, io.load_stream, io.store
     red, red_pair, red_half, red_half_pair = io.red, io.red_pair, io.red_half, io.red_half_pair
     VU = wp.types.vector(length=D, dtype=wp.uint32)
     VD = wp.types.vector(length=D, dtype=wp.float32)
@@ -408,22 +405,6 @@ def get_kernels(config: KernelConfig) -> Kernels:
         return wc
 
     @wp.func
-    def split_pair(vp: VP, odd_first: bool):
-        """(entry e, entry e+1) of an aligned pair -> (entry e + odd_first, the other one)."""
-        lo = V(0.0)
-        hi = V(0.0)
-        if wp.static(F == 1):
-            lo = vp[0]
-            hi = vp[1]
-        else:
-            for f in range(F):
-                lo[f] = vp[f]
-                hi[f] = vp[F + f]
-        if odd_first:
-            return hi, lo
-        return lo, hi
-
-    @wp.func
     def join_pair(a: V, b: V, odd_first: bool):
         """Values for (lower-x corner, upper-x corner) -> vector for entries (e, e+1)."""
         vp = VP()
@@ -456,20 +437,8 @@ def get_kernels(config: KernelConfig) -> Kernels:
         g, w, dw = locate(x, p, scale)
         idx = corner_indices(g, res, size, hashed)
         acc = V(0.0)
-        if wp.static(paired):
-            # the aligned pair holding i0 is always read (16 bytes, one sector); i1 is either
-            # its other half or needs a (predicated) load of its own
-            for ch in range(NH):
-                c = 2 * ch
-                i0 = idx[c]
-                i1 = idx[c + 1]
-                v0, v1 = split_pair(gather_pair(params, off + (i0 & ~wp.uint32(1))), (i0 & wp.uint32(1)) != 0)
-                if i1 != (i0 ^ wp.uint32(1)):
-                    v1 = gather(params, off + i1)
-                acc += corner_weight(w, c) * v0 + corner_weight(w, c + 1) * v1
-        else:
-            for c in range(NC):
-                acc += corner_weight(w, c) * gather(params, off + idx[c])
+        for c in range(NC):
+            acc += corner_weight(w, c) * gather(params, off + idx[c])
         return acc
 
     @wp.func
@@ -565,7 +534,8 @@ def get_kernels(config: KernelConfig) -> Kernels:
                         g1 = corner_weight(w, c + 1) * go
                         if i1 == (i0 ^ wp.uint32(1)):
                             odd = (i0 & wp.uint32(1)) != 0
-                            scatter_pair(grad, grad_half, use_half, off + (i0 & ~wp.uint32(1)), hb, join_pair(g0, g1, odd))
+                            e = off + (i0 & ~wp.uint32(1))
+                            scatter_pair(grad, grad_half, use_half, e, hb, join_pair(g0, g1, odd))
                         else:
                             scatter(grad, grad_half, use_half, off + i0, hb, g0)
                             scatter(grad, grad_half, use_half, off + i1, hb, g1)

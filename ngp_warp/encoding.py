@@ -96,9 +96,9 @@ class HashGridEncoding(torch.nn.Module):
     """Multiresolution hash-grid encoding of points in ``[0, 1]^D``, as tiny-cuda-nn's ``HashGrid``.
 
     Encodes ``x`` ``[N, D]`` float32 into ``[N, L*F]`` float32, level-major (level ``l``'s
-    ``F`` features at columns ``l*F ... l*F + F - 1``). The semantics and the parameter
-    layout match tiny-cuda-nn bit for bit in the index computation, so a tcnn ``HashGrid``'s
-    ``params`` can be loaded here (``load_state_dict``) and the other way round:
+    ``F`` features at columns ``l*F ... l*F + F - 1``). Level constants, index computation and
+    parameter layout are tiny-cuda-nn's, so a tcnn ``HashGrid``'s ``params`` can be loaded here
+    (``load_state_dict``) and the other way round:
 
     * level ``l`` has ``scale = exp2(l*log2(per_level_scale))*base_resolution - 1``, grid
       resolution ``ceil(scale) + 1`` and ``min(next_multiple(res^D, 8), 2^log2_hashmap_size)``
@@ -107,6 +107,13 @@ class HashGridEncoding(torch.nn.Module):
       ``floor(pos)``, with d-linear weights of ``pos - floor(pos)`` (or their smoothstep);
     * a corner's entry is ``x + y*res + z*res^2`` where the level's dense grid fits its
       table, else ``(x*1 ^ y*2654435761 ^ z*805459861) mod entries`` in uint32 arithmetic.
+      "Fits" is decided as tcnn does, by a uint32 loop ``stride *= res`` that wraps: levels
+      whose ``res^2`` reaches ``2^32`` while ``res <= entries`` (resolutions 2^16 ... 2^19 of the
+      default configuration, with ``per_level_scale=2``) are indexed ``(x + y*res) mod
+      entries``, z ignored, exactly like tcnn.
+
+    The scales are computed on the host with numpy's float32 ``exp2``/``log2``; tcnn's device
+    ``exp2f`` may differ in the last bit where ``l * log2(per_level_scale)`` is not an integer.
 
     Inputs outside ``[0, 1]`` are *not* clamped, as in tcnn: their cell coordinates wrap
     around in uint32 and land on some (hashed or folded) entry; map your scene into the unit
@@ -126,10 +133,11 @@ class HashGridEncoding(torch.nn.Module):
             at its default).
         grad_dtype: ``torch.float32`` (default, exact up to the order of float additions) or
             ``torch.float16``: the table gradient of the hashed levels is accumulated in half
-            precision (packed half2 atomics, half the atomic traffic) and converted to float32
+            precision (packed half2 reductions into a scratch buffer) and converted to float32
             at the end. Lossy: each entry's sum is rounded to 11 significant bits at every
-            addition. The dense coarse levels, whose entries collect many more additions, stay
-            in float32.
+            addition; the dense coarse levels, whose entries collect many more additions, stay
+            in float32. On sm_90 it is no faster than the float32 path (whose vector reductions
+            already cost one operation per corner); before sm_90 it halves the reductions.
         device: where ``params`` lives initially (``.to()`` moves it as usual).
 
     Attributes:
@@ -147,9 +155,9 @@ class HashGridEncoding(torch.nn.Module):
     CUDA scheduling (see ``kernels/hashgrid.py``) is tunable through the attributes
     ``cuda_level_lanes`` (K: consecutive lanes sharing a point, one level each; default
     ``8 // F``, so that they write whole 32-byte sectors), ``cuda_levels_per_thread`` (G:
-    levels each of them handles in turn, default 1), ``cuda_paired`` (x-pair merged accesses
-    for ``F <= 2``) and ``cuda_dx_levels_per_thread`` (levels per input-gradient item; 0: all
-    levels in one item, no atomics).
+    levels each of them handles in turn, default 1), ``cuda_paired`` (x-pair merged reductions
+    of the table gradient for ``F <= 2``) and ``cuda_dx_levels_per_thread`` (levels per
+    input-gradient item; 0: all levels in one item, no atomics).
     """
 
     def __init__(
@@ -229,9 +237,14 @@ class HashGridEncoding(torch.nn.Module):
             torch.empty(self.n_params, dtype=torch.float32, device=device).uniform_(-1e-4, 1e-4)
         )
         meta = [[r, o, s, int(h)] for r, o, s, h in zip(table.resolutions, table.offsets, table.sizes, table.hashed)]
-        self.register_buffer("_scales", torch.tensor(table.scales, dtype=torch.float32, device=device), persistent=False)
+        scales = torch.tensor(table.scales, dtype=torch.float32, device=device)
+        self.register_buffer("_scales", scales, persistent=False)
         self.register_buffer("_meta", torch.tensor(meta, dtype=torch.int32, device=device), persistent=False)
         self._wp_meta: dict = {}
+
+    def __getstate__(self):
+        # the cached Warp views hold raw pointers: rebuilt on demand after copy / pickle
+        return {**super().__getstate__(), "_wp_meta": {}}
 
     @classmethod
     def from_finest_resolution(
@@ -260,9 +273,11 @@ class HashGridEncoding(torch.nn.Module):
             raise ValueError(f"HashGridEncoding expects float32 positions, got {x.dtype}")
         if x.device != self.params.device:
             raise ValueError(f"x is on {x.device} but the encoding's params are on {self.params.device}")
-        if x.shape[0] * self.n_levels > _MAX_ITEMS:
-            raise ValueError(f"at most {_MAX_ITEMS // self.n_levels} points per call, got {x.shape[0]}")
-        _wp.device_of(x)  # CPU or CUDA only
+        n = x.shape[0]
+        config = self._kernels(_wp.device_of(x)).config  # (CPU or CUDA only)
+        dx_items = -(-self.n_levels // max(1, config.dx_levels_per_thread)) * n
+        if max(self._n_items(config, n), dx_items) > _MAX_ITEMS:  # kernels index items with int32
+            raise ValueError(f"too many points for one call ({n}); split the batch")
         return _HashGridFunction.apply(x.contiguous(), self.params, self)
 
     # -- kernel plumbing -------------------------------------------------------------------
@@ -318,7 +333,15 @@ class HashGridEncoding(torch.nn.Module):
         _wp.launch(
             k.forward,
             self._n_items(k.config, n),
-            [n, L, _wp.to_wp(x.reshape(-1)), self._entries(_aligned(params.detach())), scales, meta, self._entries(out)],
+            [
+                n,
+                L,
+                _wp.to_wp(x.reshape(-1)),
+                self._entries(_aligned(params.detach())),
+                scales,
+                meta,
+                self._entries(out),
+            ],
             device,
         )
         return out

@@ -1,5 +1,7 @@
 """HashGridEncoding: level table, values and both gradients against the float64 reference."""
 
+import copy
+import io
 import math
 
 import pytest
@@ -208,7 +210,14 @@ def test_half_precision_gradient_close_to_float32():
 
 def test_bad_input_raises_value_error():
     enc = HashGridEncoding(3, 2, 2, 8, 4, 2.0)
-    for bad in (torch.rand(10), torch.rand(10, 2), torch.rand(2, 10, 3), torch.rand(10, 3).double(), torch.zeros(10, 3, dtype=torch.int32)):
+    bad_inputs = (
+        torch.rand(10),  # rank 1
+        torch.rand(10, 2),  # width
+        torch.rand(2, 10, 3),  # rank 3
+        torch.rand(10, 3).double(),  # dtype
+        torch.zeros(10, 3, dtype=torch.int32),
+    )
+    for bad in bad_inputs:
         with pytest.raises(ValueError):
             enc(bad)
     with pytest.raises(ValueError):
@@ -233,6 +242,17 @@ def test_state_dict_round_trip():
     b.load_state_dict(sd)
     x = torch.rand(50, 3)
     assert torch.equal(a(x), b(x))
+
+
+def test_copy_and_pickle():
+    enc = HashGridEncoding(3, 4, 2, 8, 4, 2.0)
+    x = torch.rand(10, 3)
+    y = enc(x)  # fills the module's cache of Warp views
+    assert torch.equal(copy.deepcopy(enc)(x), y)
+    buf = io.BytesIO()
+    torch.save(enc, buf)
+    buf.seek(0)
+    assert torch.equal(torch.load(buf, weights_only=False)(x), y)
 
 
 def test_non_contiguous_input():
