@@ -48,21 +48,34 @@ def _train_config(args):
 
 
 def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
-    from ngp_warp.checkpoint import load_trainer, save_checkpoint
+    """Train (or resume), checkpoint, evaluate and render into ``out``."""
     from ngp_warp.data import load_scene
+
+    device = _device(args.device)
+    out = Path(out)
+    resume = getattr(args, "resume", False)
+    scene = None if resume else load_scene(scene_path, downscale=args.downscale)
+    created = not out.exists()
+    out = _writable_dir(out)
+    try:
+        return _run(scene, scene_path, out, args, device, config, resume)
+    except BaseException:
+        if created and not any(out.iterdir()):
+            out.rmdir()  # leave nothing behind for a run that wrote nothing
+        raise
+
+
+def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: bool) -> dict:
+    from ngp_warp.checkpoint import load_trainer, save_checkpoint
     from ngp_warp.evaluate import evaluate, render_orbit
     from ngp_warp.trainer import Trainer
 
-    device = _device(args.device)
-    out = _writable_dir(out)
     ckpt = out / CHECKPOINT
-    if getattr(args, "resume", False):
+    if resume:
         trainer, _ = load_trainer(ckpt, device=device)
-        steps, seconds = args.steps, args.seconds
-        trainer.config.steps, trainer.config.seconds = steps, seconds
+        trainer.config.steps, trainer.config.seconds = args.steps, args.seconds
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
-        scene = load_scene(scene_path, downscale=args.downscale)
         trainer = Trainer(scene, config or _train_config(args), device=device)
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "

@@ -57,6 +57,7 @@ def test_demo_runs_end_to_end(tmp_path):
 def test_missing_scene_is_one_line(tmp_path, capsys):
     assert main(["train", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--steps", "1", *FAST]) == 2
     assert "nope" in one_line_error(capsys)
+    assert not (tmp_path / "o").exists()  # nothing left behind
 
 
 def test_malformed_transforms_is_one_line(tmp_path, capsys):

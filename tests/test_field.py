@@ -46,3 +46,15 @@ def test_field_shapes_and_gradients():
     assert torch.equal(sigma, sigma2) and not torch.allclose(rgb, rgb2)
     # Density is zero outside the box.
     assert (field.density(torch.full((3, 3), 1.5)) == 0).all()
+
+
+def test_field_runs_under_autocast():
+    cfg = FieldConfig(n_levels=4, log2_hashmap_size=12, finest_resolution=64.0, hidden=16)
+    field = NGPField(torch.tensor([-1.0, -1, -1, 1, 1, 1]), cfg)
+    x = torch.rand(64, 3) * 2 - 1
+    d = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        sigma, rgb = field(x, d)
+    assert sigma.dtype == torch.float32 and rgb.dtype == torch.float32
+    (sigma.sum() + rgb.sum()).backward()
+    assert field.density_mlp[0].weight.grad is not None and field.encoding.params.grad is not None
