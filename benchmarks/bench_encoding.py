@@ -33,11 +33,8 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import platform
-import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -46,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ngp_warp import HashGridEncoding  # noqa: E402
 from ngp_warp._reference.encoding import encode_like  # noqa: E402
+from ngp_warp.bench import device_name, measure  # noqa: E402
 
 
 def parse_sizes(text: str) -> list[int]:
@@ -87,78 +85,6 @@ def apply_variant(enc: HashGridEncoding, variant: str, defaults: dict) -> None:
             enc.cuda_levels_per_thread = int(tok[1:])
         else:
             raise SystemExit(f"unknown variant token {tok!r}")
-
-
-def timer(device: torch.device, fn, repeats: int, warmup: int, inner: int) -> float:
-    """Median seconds per call of ``fn``, timed over batches of ``inner`` back-to-back calls.
-
-    On a GPU the calls of a batch are queued back to back between two CUDA events, so that the
-    host's per-call overhead (Python, argument wrapping, launch) overlaps the GPU work as in a
-    training loop instead of being counted as idle GPU time.
-    """
-    for _ in range(warmup):
-        fn()
-    times = []
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-        for _ in range(repeats):
-            start = torch.cuda.Event(enable_timing=True)
-            end = torch.cuda.Event(enable_timing=True)
-            start.record()
-            for _ in range(inner):
-                fn()
-            end.record()
-            end.synchronize()
-            times.append(start.elapsed_time(end) * 1e-3 / inner)
-    else:
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            for _ in range(inner):
-                fn()
-            times.append((time.perf_counter() - t0) / inner)
-    return statistics.median(times)
-
-
-def measure(enc, encode, params, n: int, device, repeats: int, warmup: int, inner: int, with_dx: bool) -> dict:
-    """Times of fwd / bwd / f+b (and bwdx) for ``encode(x, params)`` on two alternating inputs."""
-    D = enc.n_input_dims
-    xs = [torch.rand(n, D, device=device) for _ in range(2)]
-    g = torch.randn(n, enc.n_output_dims, device=device)
-    state = {"i": 0}
-
-    def next_x():
-        state["i"] ^= 1
-        return xs[state["i"]]
-
-    def fwd():
-        with torch.no_grad():
-            encode(next_x(), params)
-
-    ys = [encode(x, params) for x in xs]
-
-    def bwd():
-        state["i"] ^= 1
-        torch.autograd.grad(ys[state["i"]], params, g, retain_graph=True)
-
-    def fwd_bwd():
-        torch.autograd.grad(encode(next_x(), params), params, g)
-
-    out = {
-        "fwd_s": timer(device, fwd, repeats, warmup, inner),
-        "bwd_s": timer(device, bwd, repeats, warmup, inner),
-        "fb_s": timer(device, fwd_bwd, repeats, warmup, inner),
-    }
-    del ys
-    if with_dx:
-        xg = [x.clone().requires_grad_() for x in xs]
-        ys = [encode(x, params.detach()) for x in xg]
-
-        def bwdx():
-            state["i"] ^= 1
-            torch.autograd.grad(ys[state["i"]], xg[state["i"]], g, retain_graph=True)
-
-        out["bwdx_s"] = timer(device, bwdx, repeats, warmup, inner)
-    return out
 
 
 def main(argv=None) -> int:
@@ -208,7 +134,7 @@ def main(argv=None) -> int:
     header = {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
         "commit": commit,
-        "device": torch.cuda.get_device_name(device) if is_cuda else platform.processor() or platform.machine(),
+        "device": device_name(device),
         "torch": torch.__version__,
         "warp": __import__("warp").__version__,
         "config": {

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -26,6 +27,9 @@ from ngp_warp.trainer import TrainConfig, Trainer
 
 
 def _commit() -> str:
+    """``NGP_WARP_COMMIT`` when set (trees copied without .git), else git's short HEAD."""
+    if os.environ.get("NGP_WARP_COMMIT"):
+        return os.environ["NGP_WARP_COMMIT"]
     try:
         return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                               cwd=Path(__file__).parent).stdout.strip() or "unknown"

@@ -51,6 +51,7 @@ INTERPOLATIONS = (LINEAR, SMOOTHSTEP)
 
 _P1 = wp.constant(wp.uint32(PRIMES[1]))
 _P2 = wp.constant(wp.uint32(PRIMES[2]))
+_ALL_BITS = wp.constant(wp.uint32(0xFFFFFFFF))
 
 
 class KernelConfig(NamedTuple):
@@ -370,7 +371,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
         mask = size - wp.uint32(1)
         folded = is_hashed or (size & mask) == wp.uint32(0)  # index & mask == index % size
         if not folded:
-            mask = wp.uint32(0xFFFFFFFF)
+            mask = _ALL_BITS
         idx = VI()
         for c in range(NC):
             t0 = a0[0]
