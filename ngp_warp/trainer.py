@@ -80,6 +80,7 @@ class Trainer:
                 {"params": self.field.mlp_parameters(), "weight_decay": cfg.weight_decay},
             ],
             lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
+            fused=self.device.type == "cuda",  # one kernel for the whole update on the GPU
         )
         self.step_count = 0
         self.train_seconds = 0.0
