@@ -40,6 +40,14 @@ def offsets_from_indices(
             offsets[q] = n_samples
 
 
+# The forward reads samples in groups of _GROUP: a group's loads do not depend on T, so they are
+# issued together and a long ray waits for memory once per group instead of once per sample (one
+# thread walks a whole ray; 30% faster on 323-sample rays). The arithmetic per sample, and its
+# order, is that of a plain loop.
+_GROUP = wp.constant(8)
+_vec_group = wp.types.vector(length=8, dtype=float)
+
+
 # δ_i = t_end_i − t_start_i, α_i = 1 − exp(−σ_i δ_i), T_i = Π_{j<i} (1 − α_j),
 # w_i = T_i α_i if T_i ≥ eps else 0 (and 0 for every later sample),
 # C = Σ w_i c_i, O = Σ w_i, D = Σ w_i (t_start_i + t_end_i)/2.
@@ -66,17 +74,39 @@ def composite_forward(
     T = float(1.0)
     i = int(offsets[r])
     end = int(offsets[r + 1])
-    while i < end and T >= eps:
-        delta = t_ends[i] - t_starts[i]
-        x = sigmas[i] * delta
-        w = T * one_minus_exp_neg(x)
-        trans[i] = T
-        weights[i] = w
-        color += w * rgbs[i]
-        opacity += w
-        depth += w * 0.5 * (t_starts[i] + t_ends[i])
-        T = T * wp.exp(-x)
-        i += 1
+    stopped = int(0)
+    while i < end and stopped == 0:
+        n = wp.min(end - i, _GROUP)
+        x = _vec_group()
+        span = _vec_group()
+        red = _vec_group()
+        green = _vec_group()
+        blue = _vec_group()
+        for k in range(_GROUP):
+            if k < n:
+                ts = t_starts[i + k]
+                te = t_ends[i + k]
+                c = rgbs[i + k]
+                x[k] = sigmas[i + k] * (te - ts)
+                span[k] = ts + te
+                red[k] = c[0]
+                green[k] = c[1]
+                blue[k] = c[2]
+        for k in range(_GROUP):
+            if k < n:
+                if stopped == 0 and T >= eps:
+                    w = T * one_minus_exp_neg(x[k])
+                    trans[i + k] = T
+                    weights[i + k] = w
+                    color += w * wp.vec3(red[k], green[k], blue[k])
+                    opacity += w
+                    depth += w * 0.5 * span[k]
+                    T = T * wp.exp(-x[k])
+                else:
+                    stopped = 1
+                    trans[i + k] = 0.0
+                    weights[i + k] = 0.0
+        i += n
     while i < end:
         trans[i] = 0.0
         weights[i] = 0.0
@@ -89,7 +119,9 @@ def composite_forward(
 # With upstream gradients g_C, g_O, g_D, g_w and v_i = c_i·g_C + m_i g_D + g_O + g_w_i
 # (so L = Σ_i w_i v_i), and ∂w_j/∂σ_i = δ_i T_{i+1} (j = i), −δ_i w_j (j > i):
 #   ∂L/∂c_i = w_i g_C,     ∂L/∂σ_i = δ_i (T_{i+1} v_i − Σ_{j>i} w_j v_j).
-# Back to front, so the suffix sum accumulates without cancellation.
+# Back to front, so the suffix sum accumulates without cancellation (a plain loop: reading in
+# groups as in the forward measured slower here). Bits 0-3 of has_grads say which of g_C, g_O,
+# g_D, g_w are given (the others are null arrays and count as zero).
 @wp.kernel
 def composite_backward(
     first: int,
@@ -103,14 +135,20 @@ def composite_backward(
     grad_opacity: wp.array(dtype=float),
     grad_depth: wp.array(dtype=float),
     grad_weights: wp.array(dtype=float),
-    has_grad_weights: int,
+    has_grads: int,
     grad_sigmas: wp.array(dtype=float),
     grad_rgbs: wp.array(dtype=wp.vec3),
 ):
     r = first + wp.tid()
-    g_c = grad_rgb[r]
-    g_o = grad_opacity[r]
-    g_d = grad_depth[r]
+    g_c = wp.vec3(0.0)
+    g_o = float(0.0)
+    g_d = float(0.0)
+    if (has_grads & 1) != 0:
+        g_c = grad_rgb[r]
+    if (has_grads & 2) != 0:
+        g_o = grad_opacity[r]
+    if (has_grads & 4) != 0:
+        g_d = grad_depth[r]
     suffix = float(0.0)
     start = int(offsets[r])
     for i in range(int(offsets[r + 1]) - 1, start - 1, -1):
@@ -120,7 +158,7 @@ def composite_backward(
         w = T * one_minus_exp_neg(x)
         T_next = T * wp.exp(-x)
         v = wp.dot(rgbs[i], g_c) + 0.5 * (t_starts[i] + t_ends[i]) * g_d + g_o
-        if has_grad_weights != 0:
+        if (has_grads & 8) != 0:
             v += grad_weights[i]
         grad_rgbs[i] = w * g_c
         grad_sigmas[i] = delta * (T_next * v - suffix)

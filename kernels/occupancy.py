@@ -6,6 +6,11 @@ with centre ``c`` and half extent ``h``; cascade ``l`` covers ``c ± h·2^l``. E
 ``R³`` grid of cells; cell ``(l, i, j, k)`` has linear id ``((l·R + i)·R + j)·R + k`` and its
 occupancy is bit ``id & 7`` of byte ``id >> 3`` of the bitfield. A point belongs to the finest
 cascade whose box contains it.
+
+Mip ``m`` (1 ≤ m ≤ n_mips, ``R % 2^n_mips = 0``) of cascade ``l`` holds one byte per block of
+``2^m × 2^m × 2^m`` cells, nonzero unless the march may jump over the whole block: block
+``(a, b, c)`` of mip ``m`` of level ``l`` is byte ``l·mip_cells + base_m + (a·R_m + b)·R_m + c``
+with ``R_m = R >> m`` and ``base_m = Σ_{m' < m} R_{m'}³``.
 """
 
 import warp as wp
@@ -164,6 +169,45 @@ def pack_bitfield(
             if occs[cell] > thr:
                 bits = bits | (1 << b)
     bitfield[i] = wp.uint8(bits)
+
+
+# Mip m from the level below (mip 0 = the bitfield): a block is marked when any of its 8
+# sub-blocks is, or (m = 1, l ≥ 1) when it overlaps the box of cascade l − 1 (cells
+# R/4 .. 3R/4 − 1 on every axis), whose points the march must classify with the finer cascade.
+@wp.kernel
+def pack_mip(
+    first: int,
+    bitfield: wp.array(dtype=wp.uint8),
+    res: int,
+    m: int,
+    mip_cells: int,
+    base_child: int,
+    base: int,
+    mips: wp.array(dtype=wp.uint8),
+):
+    i = first + wp.tid()
+    rm = res >> m
+    per_level = rm * rm * rm
+    level = i // per_level
+    rem = i - level * per_level
+    blk = wp.vec3i(rem // (rm * rm), (rem // rm) % rm, rem % rm)
+    marked = int(0)
+    for q in range(8):
+        child = wp.vec3i(2 * blk[0] + (q & 1), 2 * blk[1] + ((q >> 1) & 1), 2 * blk[2] + (q >> 2))
+        if m == 1:
+            if is_occupied(bitfield, cell_id(level, child, res)):
+                marked = 1
+        else:
+            rc = 2 * rm
+            if int(mips[level * mip_cells + base_child + (child[0] * rc + child[1]) * rc + child[2]]) != 0:
+                marked = 1
+    if m == 1 and level > 0:
+        inner = int(1)
+        for a in range(3):
+            if 2 * blk[a] + 2 <= res // 4 or 2 * blk[a] >= 3 * res // 4:
+                inner = 0
+        marked = marked | inner
+    mips[level * mip_cells + base + rem] = wp.uint8(marked)
 
 
 @wp.func

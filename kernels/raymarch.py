@@ -1,5 +1,7 @@
-"""Ray marching through an occupancy grid (one thread per ray), run twice: count, then fill.
+"""Ray marching through an occupancy grid, run twice: count, then fill.
 
+With fixed steps a ray's steps are split into segments of ``seg_steps`` steps, each marched by
+its own thread (the last one runs to the ray's end); with cone steps one thread marches a ray.
 Sampling carries no gradient, so there is no backward kernel here.
 """
 
@@ -62,14 +64,63 @@ def step_at(t: float, step: float, cone: float, max_step: float) -> float:
     return dt
 
 
+@wp.func
+def empty_mip(mips: wp.array(dtype=wp.uint8), base: int, ijk: wp.vec3i, res: int, n_mips: int) -> int:
+    """Largest m ≤ n_mips whose block (of 2^m cells per axis) holding the empty cell ijk is
+    unmarked in every mip up to m (0 when the mip-1 block is marked); base = level·mip_cells."""
+    m = int(0)
+    searching = int(1)
+    while m < n_mips and searching != 0:
+        s = m + 1
+        rm = res >> s
+        if int(mips[base + ((ijk[0] >> s) * rm + (ijk[1] >> s)) * rm + (ijk[2] >> s)]) != 0:
+            searching = 0
+        else:
+            base += rm * rm * rm
+            m = s
+    return m
+
+
+@wp.struct
+class MarchConfig:
+    """The march's settings: grid (res, levels, n_mips, mip_cells), ray interval and steps, the
+    per-ray cap, stratification and the segments per ray (one value per batch, so the host
+    builds it once per configuration)."""
+
+    res: int
+    levels: int
+    n_mips: int
+    mip_cells: int
+    near: float
+    far: float
+    step: float
+    cone: float
+    max_step: float
+    max_per_ray: int
+    stratified: int
+    n_seg: int
+    seg_steps: int
+
+
 # Per ray: [t0, t1] = [max(near, t_enter), min(far, t_exit)] of the outermost cascade box.
 # Fixed step: t_k = t_s + k·Δt, t_s = t0 + u·Δt (u ~ U[0,1) when stratified, else 0).
 # Cone: t_{k+1} = t_k + clamp(t_k·cone, step, max_step).
 # Sample k is the interval [t_k, min(t_k + Δt, t1)], kept when its midpoint's cell (finest
-# cascade containing it) is occupied. From an empty cell the march jumps (DDA) to the first
-# t_k whose midpoint lies past the cell's exit. At most max_per_ray samples per ray.
-# fill = 0: counts[r] = number of samples. fill = 1: write them at offsets[r] .. offsets[r+1].
-@wp.kernel
+# cascade containing it) is occupied. With fixed steps, the samples whose midpoints lie before
+# that cell's exit are kept with it (one cell lookup per cell). From an empty cell the march
+# jumps (DDA) to the first t_k whose midpoint lies past the exit of the largest empty mip block
+# holding the cell (the cell itself when its mip-1 block is marked). At most max_per_ray samples
+# per ray.
+# Item i marches segment j = i mod n_seg of ray r = i div n_seg: steps k in [j·seg_steps,
+# (j+1)·seg_steps), the last segment to the ray's end (n_seg = 1 with cone steps). Since t_k
+# depends on k alone, a segment's march joins the whole ray's march at its first occupied cell.
+# fill = 0: seg_counts[i] = samples of the segment (at most max_per_ray); seg_offsets[0] = 0.
+# Between the passes seg_offsets[1:] becomes the inclusive prefix sum of the (capped) counts.
+# fill = 1: the segment's first seg_offsets[i+1] − seg_offsets[i] samples go to seg_offsets[i]
+# onwards, and ray_offsets[r] = seg_offsets[r·n_seg] (ray_offsets[n_rays] = seg_offsets[-1]).
+# At most 64 registers: twice the resident threads of the unconstrained build (96), so more rays'
+# cell lookups are in flight at once.
+@wp.kernel(cuda_max_registers=64)
 def march_rays(
     first: int,
     fill: int,
@@ -77,25 +128,34 @@ def march_rays(
     rays_d: wp.array(dtype=wp.vec3),
     aabb: wp.array(dtype=float),
     bitfield: wp.array(dtype=wp.uint8),
-    res: int,
-    levels: int,
-    near: float,
-    far: float,
-    step: float,
-    cone: float,
-    max_step: float,
-    max_per_ray: int,
-    stratified: int,
+    mips: wp.array(dtype=wp.uint8),
+    cfg: MarchConfig,
     seed: int,
-    counts: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int32),
+    seg_counts: wp.array(dtype=wp.int32),
+    seg_offsets: wp.array(dtype=wp.int32),
+    ray_offsets: wp.array(dtype=wp.int32),
     ray_indices: wp.array(dtype=wp.int64),
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
     positions: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
 ):
-    r = first + wp.tid()
+    res = cfg.res
+    levels = cfg.levels
+    n_mips = cfg.n_mips
+    mip_cells = cfg.mip_cells
+    near = cfg.near
+    far = cfg.far
+    step = cfg.step
+    cone = cfg.cone
+    max_step = cfg.max_step
+    max_per_ray = cfg.max_per_ray
+    stratified = cfg.stratified
+    n_seg = cfg.n_seg
+    seg_steps = cfg.seg_steps
+    i = first + wp.tid()
+    r = i // n_seg
+    seg = i - r * n_seg
     o = rays_o[r]
     d = rays_d[r]
     c = box_center(aabb)
@@ -105,26 +165,35 @@ def march_rays(
     t0 = wp.max(hit[0], near)
     t1 = wp.min(hit[1], far)
 
+    k = seg * seg_steps
+    k_end = k + seg_steps
+    if seg == n_seg - 1:
+        k_end = _MAX_ITERS
     base = int(0)
     cap = max_per_ray
     if fill != 0:
-        base = int(offsets[r])
-        cap = wp.min(cap, int(offsets[r + 1]) - base)
+        base = int(seg_offsets[i])
+        cap = int(seg_offsets[i + 1]) - base
+        if seg == 0:
+            ray_offsets[r] = base
+        if i == rays_o.shape[0] * n_seg - 1:
+            ray_offsets[r + 1] = int(seg_offsets[i + 1])
 
     n = int(0)
-    if t0 < t1 and wp.dot(d, d) > 0.0:
+    if t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0:
         state = wp.rand_init(seed, r)
         dt = step_at(t0, step, cone, max_step)
         t_s = t0
         if stratified != 0:
             t_s = t0 + wp.randf(state) * dt
         t = t_s
-        k = int(0)
+        if k > 0:
+            t = t_s + float(k) * dt
         inv_d = reciprocal(d)
         inv_h = reciprocal(h)
         inv_dt = 1.0 / step
         iters = int(0)
-        while t < t1 and n < cap and iters < _MAX_ITERS:
+        while t < t1 and k < k_end and n < cap and iters < _MAX_ITERS:
             iters += 1
             dt = step_at(t, step, cone, max_step)
             t_end = wp.min(t + dt, t1)
@@ -139,23 +208,35 @@ def march_rays(
                 wp.clamp(int(wp.floor(f[2])), 0, res - 1),
             )
             if is_occupied(bitfield, cell_id(level, ijk, res)):
-                if fill != 0:
-                    j = base + n
-                    ray_indices[j] = wp.int64(r)
-                    t_starts[j] = t
-                    t_ends[j] = t_end
-                    positions[j] = p
-                    directions[j] = d
-                n += 1
-                k += 1
-                if cone > 0.0:
-                    t = t + dt
-                else:
-                    t = t_s + float(k) * dt
+                # fixed steps: every step whose midpoint lies before the cell's exit is in the cell
+                k_stop = k + 1
+                if cone == 0.0:
+                    size = h * (2.0 * scale / float(res))
+                    cell_lo = lower + wp.cw_mul(wp.vec3(float(ijk[0]), float(ijk[1]), float(ijk[2])), size)
+                    t_leave = cell_exit(o, d, inv_d, cell_lo, size)
+                    last = wp.min(wp.ceil((t_leave - t_s) * inv_dt - 0.5), float(_MAX_ITERS))
+                    k_stop = wp.min(wp.max(k + 1, int(last)), k_end)
+                while k < k_stop and t < t1 and n < cap:
+                    t_end = wp.min(t + dt, t1)
+                    if fill != 0:
+                        j = base + n
+                        ray_indices[j] = wp.int64(r)
+                        t_starts[j] = t
+                        t_ends[j] = t_end
+                        positions[j] = o + d * (0.5 * (t + t_end))
+                        directions[j] = d
+                    n += 1
+                    k += 1
+                    if cone > 0.0:
+                        t = t + dt
+                    else:
+                        t = t_s + float(k) * dt
             else:
+                mip = empty_mip(mips, level * mip_cells, ijk, res, n_mips)
                 size = h * (2.0 * scale / float(res))
-                cell_lo = lower + wp.cw_mul(wp.vec3(float(ijk[0]), float(ijk[1]), float(ijk[2])), size)
-                t_leave = cell_exit(o, d, inv_d, cell_lo, size)
+                block = wp.vec3i((ijk[0] >> mip) << mip, (ijk[1] >> mip) << mip, (ijk[2] >> mip) << mip)
+                cell_lo = lower + wp.cw_mul(wp.vec3(float(block[0]), float(block[1]), float(block[2])), size)
+                t_leave = cell_exit(o, d, inv_d, cell_lo, size * float(1 << mip))
                 if cone > 0.0:
                     t = t + dt
                     while t < t1 and t + 0.5 * step_at(t, step, cone, max_step) < t_leave and iters < _MAX_ITERS:
@@ -166,4 +247,6 @@ def march_rays(
                     k = wp.max(k + 1, int(target))
                     t = t_s + float(k) * dt
     if fill == 0:
-        counts[r] = n
+        seg_counts[i] = n
+        if i == 0:
+            seg_offsets[0] = 0

@@ -20,18 +20,27 @@ import math
 from collections.abc import Callable
 
 import torch
-import warp as wp
 from torch import nn
 
 from ngp_warp import _wp
 from ngp_warp.kernels import occupancy as K
 
 _MAX_LEVELS = 16
+_MAX_MIPS = 4  # the march jumps over empty blocks of up to 16³ cells
 
 
 def host_seed() -> int:
     """A kernel RNG seed from torch's default CPU generator (reproducible, never syncs a GPU)."""
     return int(torch.randint(0, 2**31 - 1, (1,)).item())
+
+
+def _storage_key(t: torch.Tensor) -> tuple | None:
+    """(version counter, address) of a tensor: changes with every in-place torch write (None for
+    inference tensors, which keep no version counter)."""
+    try:
+        return t._version, t.data_ptr()
+    except RuntimeError:
+        return None
 
 
 def _parse_aabb(aabb) -> list[float]:
@@ -58,6 +67,10 @@ class OccupancyGrid(nn.Module):
         threshold: [1] float32, the occupancy threshold of the last update (-1 before any).
         bitfield: [ceil(levels·resolution³ / 8)] uint8, bit ``id & 7`` of byte ``id >> 3`` says
         whether cell ``id = ((level·R + i)·R + j)·R + k`` is occupied.
+        mips: [levels·mip_cells] uint8 (not saved), per cascade ``n_mips`` levels of blocks of
+        2^m cells per axis, zero where all cells are empty (see :mod:`ngp_warp.kernels.occupancy`);
+        derived from ``bitfield`` by :meth:`march_mips`, which rebuilds them after any in-place
+        change of ``bitfield``.
 
     A fresh grid has every cell occupied.
     """
@@ -82,19 +95,16 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("threshold", torch.full((1,), -1.0, dtype=torch.float32, device=device))
         self.register_buffer("bitfield", torch.full(((n + 7) // 8,), 255, dtype=torch.uint8, device=device))
         self.register_buffer("_splat", torch.full((n,), -1.0, dtype=torch.float32, device=device), persistent=False)
+        self.n_mips = min(_MAX_MIPS, (resolution & -resolution).bit_length() - 1)  # R % 2^n_mips = 0
+        self._mip_bases = [sum((resolution >> k) ** 3 for k in range(1, m)) for m in range(1, self.n_mips + 2)]
+        self.mip_cells = self._mip_bases[-1]
+        self.register_buffer("mips", torch.ones(levels * self.mip_cells, dtype=torch.uint8, device=device),
+                             persistent=False)
+        self._mips_key = None
         self.register_load_state_dict_post_hook(lambda module, _keys: module._sync_host_aabb())
-        self._views_key = None
 
     def _sync_host_aabb(self) -> None:
         self._aabb_host = _parse_aabb(self.aabb)
-
-    def warp_views(self) -> tuple[wp.array, wp.array]:
-        """Warp views of ``(aabb, bitfield)``, cached while the buffers keep their storage."""
-        key = (self.aabb.data_ptr(), self.bitfield.data_ptr(), str(self.aabb.device))
-        if self._views_key != key:
-            self._views = (_wp.to_wp(self.aabb), _wp.to_wp(self.bitfield))
-            self._views_key = key
-        return self._views
 
     @property
     def n_cells(self) -> int:
@@ -167,8 +177,8 @@ class OccupancyGrid(nn.Module):
                 raise ValueError(f"density_fn must return [{m}] or [{m}, 1] densities, got {shape}")
             values = values.detach().reshape(m).to(torch.float32).contiguous()
             # Scatter-max into arbitrary cells: one CPU thread (align=m), as CPU atomics are not atomic.
-            _wp.launch(K.splat_max, m, [_wp.to_wp(cells), _wp.to_wp(values), _wp.to_wp(self._splat)], device, align=m)
-        _wp.launch(K.ema_update, n, [_wp.to_wp(self._splat), float(ema_decay), _wp.to_wp(self.occs)], device)
+            _wp.launch(K.splat_max, m, [cells, values, self._splat], device, align=m)
+        _wp.launch(K.ema_update, n, [self._splat, float(ema_decay), self.occs], device)
         visible = self.occs >= 0
         mean = (self.occs * visible).sum() / visible.sum().clamp(min=1)
         self.threshold.copy_(torch.clamp(mean, max=occ_threshold).reshape(1))
@@ -204,8 +214,8 @@ class OccupancyGrid(nn.Module):
         intr = intrinsics.to(device=dev, dtype=torch.float32).contiguous()
         _wp.launch(
             K.mark_visible, self.n_cells,
-            [_wp.to_wp(self.aabb), self.resolution, _wp.to_wp(c2w_flat), _wp.to_wp(intr), c2w_flat.shape[0],
-             float(width), float(height), float(near_plane), _wp.to_wp(self.occs)],
+            [self.aabb, self.resolution, c2w_flat, intr, c2w_flat.shape[0],
+             float(width), float(height), float(near_plane), self.occs],
             _wp.device_of(self.occs),
         )
         self._pack()
@@ -217,8 +227,8 @@ class OccupancyGrid(nn.Module):
         points = torch.empty(m, 3, dtype=torch.float32, device=self.occs.device)
         _wp.launch(
             K.sample_cells, m,
-            [lo, int(warmup), n_uniform, self.n_cells, seed, None if prefix is None else _wp.to_wp(prefix),
-             _wp.to_wp(self.aabb), self.resolution, _wp.to_wp(cells), _wp.to_wp(points, dtype=wp.vec3)],
+            [lo, int(warmup), n_uniform, self.n_cells, seed, prefix,
+             self.aabb, self.resolution, cells, points],
             _wp.device_of(self.occs),
         )
         return cells, points
@@ -226,9 +236,25 @@ class OccupancyGrid(nn.Module):
     def _pack(self) -> None:
         _wp.launch(
             K.pack_bitfield, self.bitfield.numel(),
-            [_wp.to_wp(self.occs), _wp.to_wp(self.threshold), self.n_cells, _wp.to_wp(self.bitfield)],
-            _wp.device_of(self.occs),
+            [self.occs, self.threshold, self.n_cells, self.bitfield], _wp.device_of(self.occs),
         )
+        self._pack_mips()
+
+    def _pack_mips(self) -> None:
+        device = _wp.device_of(self.bitfield)
+        for m in range(1, self.n_mips + 1):
+            _wp.launch(
+                K.pack_mip, self.levels * (self.resolution >> m) ** 3,
+                [self.bitfield, self.resolution, m, self.mip_cells, self._mip_bases[m - 2] if m > 1 else 0,
+                 self._mip_bases[m - 1], self.mips], device,
+            )
+        self._mips_key = _storage_key(self.bitfield)
+
+    def march_mips(self) -> torch.Tensor:
+        """``mips``, rebuilt first if ``bitfield`` changed in place since they were built."""
+        if self._mips_key is None or self._mips_key != _storage_key(self.bitfield):
+            self._pack_mips()
+        return self.mips
 
     def extra_repr(self) -> str:
         return f"aabb={self._aabb_host}, resolution={self.resolution}, levels={self.levels}"

@@ -11,21 +11,50 @@ Each ray is clipped to the coarsest cascade's box and to ``[near, far]``, then s
 keeping the interval :math:`[t_k, \\min(t_k + \\Delta t_k, t_{far})]` when the cell (of the finest
 cascade containing it) of its midpoint is occupied, and jumping over empty cells (DDA).
 Samples are produced by count → prefix sum → fill; the only host synchronisation reads the
-total sample count to size the outputs.
+total sample count to size the outputs. With fixed steps several threads march one ray, each
+over a segment of its steps (:class:`MarchSchedule`); the samples do not depend on the split.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
-import warp as wp
 
 from ngp_warp import _wp
 from ngp_warp.kernels import raymarch as K
 from ngp_warp.occupancy import OccupancyGrid, host_seed
 
 _NO_CAP = 2**31 - 1
+
+
+@dataclass(frozen=True)
+class MarchSchedule:
+    """Threads per ray for fixed steps: a ray's steps are split into segments of at least
+    ``segment_steps`` steps, at most ``max_segments`` of them per ray."""
+
+    segment_steps: int
+    max_segments: int
+
+
+# The GPU needs many short segments to fill its threads; on the CPU each segment costs a ray
+# setup while the rays alone already keep every core busy.
+SCHEDULES = {"cpu": MarchSchedule(512, 8), "cuda": MarchSchedule(32, 128)}
+
+
+def _segments(schedule: MarchSchedule, grid: OccupancyGrid, near: float, far: float, step: float,
+              cone_angle: float) -> tuple[int, int]:
+    """(segments per ray, steps per segment). A fixed-step ray inside the coarsest cascade box
+    takes at most min(far − near, box diagonal) / step + 1 steps when |d| = 1 (the last segment
+    takes any remainder); cone steps are marched by one thread per ray."""
+    if cone_angle > 0:
+        return 1, _NO_CAP
+    lo, hi = grid.aabb_host[:3], grid.aabb_host[3:]
+    diagonal = math.dist(lo, hi) * 2 ** (grid.levels - 1)
+    steps = min(far - near, diagonal) / step + 1
+    n_seg = int(min(max(steps / schedule.segment_steps, 1), schedule.max_segments))
+    return n_seg, math.ceil(steps / n_seg)
 
 
 @dataclass
@@ -64,6 +93,21 @@ def _check_rays(rays_o: torch.Tensor, rays_d: torch.Tensor, grid: OccupancyGrid)
             raise ValueError(f"{name} is on {t.device} but the grid is on {grid.occs.device}")
     if rays_o.shape[0] != rays_d.shape[0]:
         raise ValueError(f"rays_o holds {rays_o.shape[0]} rays but rays_d {rays_d.shape[0]}")
+
+
+_configs: dict[tuple, K.MarchConfig] = {}
+
+
+def _march_config(*values) -> K.MarchConfig:
+    """The kernel's settings struct for ``values`` (in field order), built once per configuration."""
+    config = _configs.get(values)
+    if config is None:
+        if len(_configs) >= 64:
+            _configs.clear()
+        config = _configs[values] = K.MarchConfig()
+        for name, value in zip(K.MarchConfig.vars, values):
+            setattr(config, name, value)
+    return config
 
 
 @torch.no_grad()
@@ -117,32 +161,36 @@ def ray_marching(
 
     dev = rays_o.device
     n_rays = rays_o.shape[0]
-    offsets = torch.zeros(n_rays + 1, dtype=torch.int32, device=dev)
     device = _wp.device_of(rays_o)
-    common = [
-        _wp.to_wp(rays_o.contiguous(), dtype=wp.vec3), _wp.to_wp(rays_d.contiguous(), dtype=wp.vec3),
-        *grid.warp_views(), grid.resolution, grid.levels,
-        float(near), float(far), step, float(cone_angle), max_step, cap,
-        int(stratified), host_seed() if stratified else 0,
-    ]
+    n_seg, seg_steps = _segments(SCHEDULES["cpu" if device == "cpu" else "cuda"], grid, near, far, step, cone_angle)
+    config = _march_config(grid.resolution, grid.levels, grid.n_mips, grid.mip_cells, float(near), float(far), step,
+                           float(cone_angle), max_step, cap, int(stratified), n_seg, seg_steps)
+    common = [rays_o, rays_d, grid.aabb, grid.bitfield, grid.march_mips(), config, host_seed() if stratified else 0]
+    n_items = n_rays * n_seg  # one per (ray, segment)
+    seg_ints = torch.empty(2 * n_items + 1, dtype=torch.int32, device=dev)  # one allocation for both
+    seg_counts, seg_offsets = seg_ints[:n_items], seg_ints[n_items:]
+    offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=dev)
     n_samples = 0
     if n_rays > 0:
-        counts = torch.empty(n_rays, dtype=torch.int32, device=dev)
-        _wp.launch(K.march_rays, n_rays, [0, *common, _wp.to_wp(counts), None, None, None, None, None, None], device)
-        torch.cumsum(counts, 0, dtype=torch.int32, out=offsets[1:])
+        _wp.launch(K.march_rays, n_items, [0, *common, seg_counts, seg_offsets, None, *[None] * 5], device)
+        if cap != _NO_CAP:  # keep each ray's first `cap` samples: cap the running count within the ray
+            in_ray = torch.cumsum(seg_counts.view(n_rays, n_seg), 1, dtype=torch.int32).clamp_(max=cap)
+            seg_counts = torch.diff(in_ray, dim=1, prepend=in_ray.new_zeros(n_rays, 1)).reshape(-1)
+        torch.cumsum(seg_counts, 0, dtype=torch.int32, out=seg_offsets[1:])
         if max_samples is not None:
-            offsets.clamp_(max=int(max_samples))
-        n_samples = int(offsets[-1])  # the one host synchronisation: sizes the outputs
+            seg_offsets.clamp_(max=int(max_samples))
+        n_samples = int(seg_offsets[-1])  # the one host synchronisation: sizes the outputs
     ray_indices = torch.empty(n_samples, dtype=torch.int64, device=dev)
-    t_starts = torch.empty(n_samples, dtype=torch.float32, device=dev)
-    t_ends = torch.empty(n_samples, dtype=torch.float32, device=dev)
-    positions = torch.empty(n_samples, 3, dtype=torch.float32, device=dev)
-    directions = torch.empty(n_samples, 3, dtype=torch.float32, device=dev)
+    floats = torch.empty(8 * n_samples, dtype=torch.float32, device=dev)  # one allocation, contiguous parts
+    t_starts, t_ends = floats[:n_samples], floats[n_samples : 2 * n_samples]
+    positions = floats[2 * n_samples : 5 * n_samples].view(n_samples, 3)
+    directions = floats[5 * n_samples :].view(n_samples, 3)
     if n_samples > 0:
         _wp.launch(
-            K.march_rays, n_rays,
-            [1, *common, None, _wp.to_wp(offsets), _wp.to_wp(ray_indices), _wp.to_wp(t_starts), _wp.to_wp(t_ends),
-             _wp.to_wp(positions, dtype=wp.vec3), _wp.to_wp(directions, dtype=wp.vec3)],
+            K.march_rays, n_items,
+            [1, *common, None, seg_offsets, offsets, ray_indices, t_starts, t_ends, positions, directions],
             device,
         )
+    else:
+        offsets.zero_()
     return RaySamples(ray_indices, t_starts, t_ends, positions, directions, offsets)

@@ -25,7 +25,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-import warp as wp
 
 from ngp_warp import _wp
 from ngp_warp.kernels import composite as K
@@ -34,9 +33,9 @@ from ngp_warp.raymarch import ray_marching
 
 FieldFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
-
-def _vec3(t: torch.Tensor) -> wp.array:
-    return _wp.to_wp(t, dtype=wp.vec3)
+# CUDA block size of this module's kernels: one thread walks a whole ray, and a batch has ~10^4
+# rays, so small blocks spread them over all multiprocessors.
+_BLOCK = 32
 
 
 class _Composite(torch.autograd.Function):
@@ -51,14 +50,10 @@ class _Composite(torch.autograd.Function):
         depth = torch.empty(n_rays, dtype=torch.float32, device=dev)
         trans = torch.empty(n_samples, dtype=torch.float32, device=dev)
         weights = torch.empty(n_samples, dtype=torch.float32, device=dev)
-        # Warp views of the inputs and T, reused by the backward (conversions cost host time).
-        ctx.views = [_wp.to_wp(sigmas), _vec3(rgbs), _wp.to_wp(t_starts), _wp.to_wp(t_ends), _wp.to_wp(ray_offsets)]
-        ctx.views_trans = _wp.to_wp(trans)
         _wp.launch(
             K.composite_forward, n_rays,
-            [*ctx.views, float(early_stop_eps), _vec3(rgb), _wp.to_wp(opacity), _wp.to_wp(depth), ctx.views_trans,
-             _wp.to_wp(weights)],
-            _wp.device_of(sigmas),
+            [sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps), rgb, opacity, depth, trans, weights],
+            _wp.device_of(sigmas), block_dim=_BLOCK,
         )
         ctx.save_for_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans)
         ctx.set_materialize_grads(False)
@@ -66,22 +61,17 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_opacity, g_depth, g_weights):
-        sigmas, rgbs, _, _, ray_offsets, _ = ctx.saved_tensors  # also checks for in-place changes
-        if g_rgb is None and g_opacity is None and g_depth is None and g_weights is None:
+        sigmas, rgbs, t_starts, t_ends, ray_offsets, trans = ctx.saved_tensors  # checks for in-place changes
+        grads = [None if g is None else g.float().contiguous() for g in (g_rgb, g_opacity, g_depth, g_weights)]
+        has_grads = sum(1 << k for k, g in enumerate(grads) if g is not None)
+        if has_grads == 0:
             return None, None, None, None, None, None
-        n_rays = ray_offsets.shape[0] - 1
-        dev = sigmas.device
-        g_rgb = torch.zeros(n_rays, 3, device=dev) if g_rgb is None else g_rgb.float().contiguous()
-        g_opacity = torch.zeros(n_rays, device=dev) if g_opacity is None else g_opacity.float().contiguous()
-        g_depth = torch.zeros(n_rays, device=dev) if g_depth is None else g_depth.float().contiguous()
         grad_sigmas = torch.empty_like(sigmas)
         grad_rgbs = torch.empty_like(rgbs)
         _wp.launch(
-            K.composite_backward, n_rays,
-            [*ctx.views, ctx.views_trans, _vec3(g_rgb), _wp.to_wp(g_opacity), _wp.to_wp(g_depth),
-             None if g_weights is None else _wp.to_wp(g_weights.float().contiguous()), int(g_weights is not None),
-             _wp.to_wp(grad_sigmas), _vec3(grad_rgbs)],
-            _wp.device_of(sigmas),
+            K.composite_backward, ray_offsets.shape[0] - 1,
+            [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, grad_sigmas, grad_rgbs],
+            _wp.device_of(sigmas), block_dim=_BLOCK,
         )
         return grad_sigmas, grad_rgbs, None, None, None, None
 
@@ -108,9 +98,8 @@ def ray_offsets_from_indices(ray_indices: torch.Tensor, n_rays: int) -> torch.Te
     """[S] int64 sorted ray indices (S ≥ 1) → [n_rays + 1] int32 offsets, on the device, no sync."""
     offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=ray_indices.device)
     _wp.launch(
-        K.offsets_from_indices, ray_indices.shape[0],
-        [_wp.to_wp(ray_indices), ray_indices.shape[0], n_rays, _wp.to_wp(offsets)],
-        _wp.device_of(ray_indices),
+        K.offsets_from_indices, ray_indices.shape[0], [ray_indices, ray_indices.shape[0], n_rays, offsets],
+        _wp.device_of(ray_indices), block_dim=_BLOCK,
     )
     return offsets
 

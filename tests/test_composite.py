@@ -64,6 +64,29 @@ def test_backward_matches_float64_autograd(eps):
     assert (g_sigmas > 0).any() and (g_sigmas < 0).any()
 
 
+@pytest.mark.parametrize("used", [(0,), (1, 2), (3,), (0, 3)])
+def test_backward_with_some_outputs_unused(used):
+    """Outputs that get no gradient count as zero (the kernel skips them)."""
+    sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays = packed_rays()
+    sigmas.requires_grad_(True)
+    rgbs.requires_grad_(True)
+    outs = composite(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, 1e-3, return_weights=True)
+    grads = [torch.randn_like(o) for o in outs]
+    g_sigmas, g_rgbs = torch.autograd.grad([outs[k] for k in used], (sigmas, rgbs), [grads[k] for k in used],
+                                           allow_unused=True)
+    s64 = sigmas.detach().double().requires_grad_(True)
+    c64 = rgbs.detach().double().requires_grad_(True)
+    ref = composite_ref(s64, c64, t_starts.double(), t_ends.double(), ray_indices, n_rays, 1e-3)
+    r_sigmas, r_rgbs = torch.autograd.grad([ref[k] for k in used], (s64, c64), [grads[k].double() for k in used],
+                                           allow_unused=True)
+    assert_close64(g_sigmas, r_sigmas)
+    if r_rgbs is None:
+        assert g_rgbs is None or not g_rgbs.any()
+    else:
+        assert_close64(g_rgbs, r_rgbs)
+    assert g_sigmas.abs().max() > 1e-3
+
+
 def test_backward_twin_matches_autograd_in_float64():
     sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays = packed_rays()
     s64 = sigmas.double().requires_grad_(True)

@@ -145,6 +145,38 @@ def test_single_camera_and_invalid_inputs():
         grid.update(0, lambda p: torch.zeros(p.shape[0], 2))
 
 
+def mips_twin(occupied: torch.Tensor, n_mips: int) -> torch.Tensor:
+    """Pure-torch twin of the grid's mips: for m = 1 .. n_mips, the max over blocks of 2^m cells
+    per axis, where the cells of cascades l ≥ 1 inside the finer cascade's box count as occupied."""
+    levels, res = occupied.shape[0], occupied.shape[1]
+    marks = occupied.float().clone()
+    q = slice(res // 4, 3 * res // 4)
+    marks[1:, q, q, q] = 1.0
+    pooled = [torch.nn.functional.max_pool3d(marks[:, None], 2**m)[:, 0].reshape(levels, -1)
+              for m in range(1, n_mips + 1)]
+    return torch.cat([marks.new_zeros(levels, 0), *pooled], 1).reshape(-1).to(torch.uint8)
+
+
+@pytest.mark.parametrize("resolution, levels, n_mips", [(16, 3, 4), (12, 2, 2), (8, 1, 3), (5, 1, 0)])
+def test_mips_match_max_pool_twin(resolution, levels, n_mips):
+    grid = OccupancyGrid(AABB, resolution=resolution, levels=levels)
+    assert grid.n_mips == n_mips and grid.march_mips().all()  # fresh grid: everything occupied
+    grid.occs.copy_((torch.rand(grid.n_cells) < 0.03).float())
+    grid.threshold.fill_(0.5)
+    grid._pack()
+    mips = grid.march_mips()
+    twin = mips_twin(grid.occupied(), n_mips)
+    assert torch.equal(mips, twin)
+    if n_mips >= 2:
+        assert 0.05 < twin.float().mean() < 0.95  # mixed marks: the comparison is not vacuous
+    # an in-place change of the bitfield (or a loaded state) is picked up before the next march
+    grid.bitfield.zero_()
+    assert torch.equal(grid.march_mips(), mips_twin(grid.occupied(), n_mips))
+    other = OccupancyGrid(AABB, resolution=resolution, levels=levels)
+    other.load_state_dict(grid.state_dict())
+    assert torch.equal(other.march_mips(), grid.march_mips())
+
+
 @pytest.mark.parametrize(
     "args",
     [([0, 0, 0, 1, 1], 8, 1), ([0, 0, 0, 1, -1, 1], 8, 1), ([0, 0, 0, 1, 1, 1], 6, 2), ([0, 0, 0, 1, 1, 1], 8, 0),
@@ -168,5 +200,6 @@ def test_cuda_matches_cpu():
     update(0)
     torch.testing.assert_close(grids[0].occs, grids[1].occs.cpu(), rtol=1e-5, atol=1e-6)
     grids[1].load_state_dict(grids[0].state_dict())  # same bitfield, so the same cells are drawn
+    assert torch.equal(grids[0].march_mips(), grids[1].march_mips().cpu())
     update(300)
     torch.testing.assert_close(grids[0].occs, grids[1].occs.cpu(), rtol=1e-5, atol=1e-6)
