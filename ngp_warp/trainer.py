@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -33,6 +34,7 @@ class TrainConfig:
     steps_per_diagonal: int = 1024      # marching step = box diagonal / this (√3/1024 for the unit box)
     cone_angle: float = 0.0
     early_stop_eps: float = 1e-4
+    mlp_precision: str = "fp32"         # CUDA only: "fp32", "tf32" matmuls, or "bf16" autocast
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def budget(self) -> tuple[int | None, float | None]:
@@ -101,6 +103,25 @@ class Trainer:
     def field_fn(self, positions: torch.Tensor, directions: torch.Tensor):
         return self.field(positions, directions)
 
+    @contextlib.contextmanager
+    def _mlp_precision(self):
+        """The MLPs' matmul precision on CUDA (master weights stay float32)."""
+        mode = self.config.mlp_precision
+        if self.device.type != "cuda" or mode == "fp32":
+            yield
+        elif mode == "bf16":
+            with torch.autocast("cuda", dtype=torch.bfloat16):
+                yield
+        elif mode == "tf32":
+            saved = torch.backends.cuda.matmul.allow_tf32
+            torch.backends.cuda.matmul.allow_tf32 = True
+            try:
+                yield
+            finally:
+                torch.backends.cuda.matmul.allow_tf32 = saved
+        else:
+            raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {mode!r}")
+
     def render(self, rays_o, rays_d, background, stratified: bool) -> dict:
         return render_rays(
             rays_o, rays_d, self.grid, self.field_fn,
@@ -129,16 +150,17 @@ class Trainer:
         self.field.train()
         self.grid.update(self.step_count, self._density_for_grid)
         rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
-        out = self.render(rays_o, rays_d, background, stratified=True)
-        n_samples = int(out["n_samples"])
-        if self.config.loss == "huber":
-            loss = F.huber_loss(out["rgb"], target, delta=0.1)
-        else:
-            loss = F.mse_loss(out["rgb"], target)
-        self.optimizer.zero_grad(set_to_none=True)
-        if n_samples > 0:
-            loss.backward()
-            self.optimizer.step()
+        with self._mlp_precision():
+            out = self.render(rays_o, rays_d, background, stratified=True)
+            n_samples = int(out["n_samples"])
+            if self.config.loss == "huber":
+                loss = F.huber_loss(out["rgb"], target, delta=0.1)
+            else:
+                loss = F.mse_loss(out["rgb"], target)
+            self.optimizer.zero_grad(set_to_none=True)
+            if n_samples > 0:
+                loss.backward()
+                self.optimizer.step()
         mse = F.mse_loss(out["rgb"].detach(), target)
         stats = {"loss": loss.detach(), "mse": mse, "rays": self.n_rays, "samples": n_samples}
         # Hold the sample count: scale the ray count by target / actual (smoothed, clamped).
@@ -189,7 +211,8 @@ class Trainer:
             hi = min(n, lo + chunk)
             rays_o, rays_d = generate_rays(c2w[lo:hi], intr[lo:hi], None if dist is None else dist[lo:hi],
                                            px[lo:hi], py[lo:hi])
-            out = self.render(rays_o, rays_d, bg, stratified=False)
+            with self._mlp_precision():
+                out = self.render(rays_o, rays_d, bg, stratified=False)
             for k in parts:
                 parts[k].append(out[k].float())
         return {
