@@ -310,6 +310,7 @@ def launch(kernel, n: int, inputs: list, device: str, align: int = 1, block_dim:
         _command(sig, device, 1).run(sig, 0, n, inputs, None)
         return
     bounds = [min(n, -(-(n * k // n_threads) // align) * align) for k in range(n_threads + 1)]
+    _command(sig, device, 1)  # load (compile) the module here once, not in every worker at once
     pool = _cpu_pool(n_threads)
     futures = [
         pool.submit(lambda lo, hi: _command(sig, device, 1).run(sig, lo, hi - lo, inputs, None), lo, hi)
