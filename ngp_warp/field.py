@@ -94,14 +94,13 @@ class NGPField(nn.Module):
         self.config = cfg
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(6)
         self.register_buffer("aabb", aabb.clone())
-        per_level_scale = (cfg.finest_resolution / cfg.base_resolution) ** (1.0 / max(cfg.n_levels - 1, 1))
         self.encoding = HashGridEncoding(
             n_input_dims=3,
             n_levels=cfg.n_levels,
             n_features_per_level=cfg.n_features_per_level,
             log2_hashmap_size=cfg.log2_hashmap_size,
             base_resolution=cfg.base_resolution,
-            per_level_scale=per_level_scale,
+            desired_resolution=cfg.finest_resolution,
         )
         self.density_mlp = _mlp([self.encoding.n_output_dims, cfg.hidden, cfg.geo_features])
         self.color_mlp = _mlp([cfg.geo_features + 16, cfg.hidden, cfg.hidden, 3])
