@@ -146,6 +146,8 @@ def cpu_threads() -> int:
     """Threads used for CPU launches (``NGP_WARP_CPU_THREADS`` overrides the core count)."""
     env = os.environ.get("NGP_WARP_CPU_THREADS")
     if env:
+        if not env.strip().isdigit():
+            raise ValueError(f"NGP_WARP_CPU_THREADS must be a positive integer, got {env!r}")
         return max(1, int(env))
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 

@@ -71,9 +71,11 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
     from ngp_warp.trainer import Trainer
 
     ckpt = out / CHECKPOINT
+    downscale = args.downscale
     if resume:
-        trainer, _ = load_trainer(ckpt, device=device)
+        trainer, record = load_trainer(ckpt, device=device)
         trainer.config.steps, trainer.config.seconds = args.steps, args.seconds
+        scene_path, downscale = Path(record["path"]), record["downscale"]  # what the run trained on
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
         trainer = Trainer(scene, config or _train_config(args), device=device)
@@ -86,10 +88,11 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
     try:
         trainer.train(show_progress=not args.quiet)
     except KeyboardInterrupt:
-        save_checkpoint(trainer, ckpt, scene_path, args.downscale)
-        raise UserError(f"interrupted at step {trainer.step_count}; checkpoint saved to {ckpt} "
-                        f"(continue with --resume)") from None
-    save_checkpoint(trainer, ckpt, scene_path, args.downscale)
+        save_checkpoint(trainer, ckpt, scene_path, downscale)
+        print(f"ngp-warp: interrupted at step {trainer.step_count}; checkpoint saved to {ckpt} "
+              f"(continue with --resume)", file=sys.stderr)
+        raise
+    save_checkpoint(trainer, ckpt, scene_path, downscale)
     metrics = evaluate(trainer, out, show_progress=not args.quiet)
     if not args.no_video:
         video = render_orbit(trainer, out / "orbit.mp4", n_frames=args.frames, show_progress=not args.quiet)
@@ -98,7 +101,8 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
 
 
 def _print_metrics(metrics: dict, out: Path) -> None:
-    print(f"{metrics['test_split']}: PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.4f}  "
+    ssim = "n/a (images under 11 px)" if metrics["ssim"] is None else f"{metrics['ssim']:.4f}"
+    print(f"{metrics['test_split']}: PSNR {metrics['psnr']:.2f} dB  SSIM {ssim}  "
           f"({metrics['n_test_images']} images, {metrics['steps']} steps, "
           f"{metrics['train_seconds']:.1f} s training on {metrics['device']})")
     print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
@@ -145,8 +149,8 @@ def cmd_eval(args) -> None:
     from ngp_warp.checkpoint import load_trainer
     from ngp_warp.evaluate import evaluate
 
+    trainer, _ = load_trainer(Path(args.dir) / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
     out = _writable_dir(Path(args.dir))
-    trainer, _ = load_trainer(out / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
     _print_metrics(evaluate(trainer, out, show_progress=not args.quiet), out)
 
 
@@ -154,11 +158,15 @@ def cmd_render(args) -> None:
     from ngp_warp.checkpoint import load_trainer
     from ngp_warp.evaluate import render_orbit
 
-    out = _writable_dir(Path(args.dir))
-    trainer, _ = load_trainer(out / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
     video = Path(args.video)
+    if video.suffix.lower() not in (".mp4", ".gif"):
+        raise UserError(f"--video {video}: expected a .mp4 or .gif path")
+    trainer, _ = load_trainer(Path(args.dir) / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
+    out = _writable_dir(Path(args.dir))
     if not video.is_absolute():
         video = out / video
+    if not video.parent.is_dir():
+        raise UserError(f"--video {video}: folder {video.parent} does not exist")
     written = render_orbit(trainer, video, n_frames=args.frames, show_progress=not args.quiet)
     print(f"wrote {written}")
 
@@ -167,6 +175,20 @@ def cmd_bench(args) -> None:
     from ngp_warp.bench import run_kernel_bench
 
     run_kernel_bench(_device(args.device), quick=args.quick)
+
+
+def _positive(kind):
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}") from None
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -179,13 +201,13 @@ def _parser() -> argparse.ArgumentParser:
 
     def training(sp):
         budget = sp.add_mutually_exclusive_group()
-        budget.add_argument("--steps", type=int, help="training steps")
-        budget.add_argument("--seconds", type=float, help="training wall-clock budget in seconds")
-        sp.add_argument("--downscale", type=int, default=1, help="shrink images by this integer factor")
+        budget.add_argument("--steps", type=_positive(int), help="training steps")
+        budget.add_argument("--seconds", type=_positive(float), help="training wall-clock budget in seconds")
+        sp.add_argument("--downscale", type=_positive(int), default=1, help="shrink images by this integer factor")
         sp.add_argument("--seed", type=int, default=0)
-        sp.add_argument("--target-samples", type=int, help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
+        sp.add_argument("--target-samples", type=_positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
         sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
-        sp.add_argument("--frames", type=int, default=60, help="orbit video frames")
+        sp.add_argument("--frames", type=_positive(int), default=60, help="orbit video frames")
 
     t = sub.add_parser("train", help="train on a scene folder, then evaluate and render")
     t.add_argument("scene", help="NeRF-synthetic folder or folder with an instant-ngp transforms.json")
@@ -210,7 +232,7 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="render an orbit video from a trained output folder")
     r.add_argument("dir")
     r.add_argument("--video", default="orbit.mp4", help="video path (.mp4, or .gif; relative to DIR)")
-    r.add_argument("--frames", type=int, default=60)
+    r.add_argument("--frames", type=_positive(int), default=60)
     r.add_argument("--scene", help="scene folder, if it moved since training")
     common(r)
     r.set_defaults(func=cmd_render)

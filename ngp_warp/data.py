@@ -37,6 +37,7 @@ NGP_OFFSET = (0.5, 0.5, 0.5)
 NERF_SYNTHETIC_BOUND = 1.5
 NEAR_IN_UNIT_CUBE = 0.1  # near distance, in instant-ngp unit-cube lengths
 _NGP_SCENE_KEYS = ("aabb_scale", "scale", "offset", "aabb")
+MAX_AABB_SCALE = 2**15          # 16 occupancy cascades
 _UNSUPPORTED_LENS_KEYS = ("is_fisheye", "k3", "k4", "ftheta_p0", "latlong", "equirectangular")
 
 
@@ -309,6 +310,9 @@ def _world_box(meta: dict, json_path: Path) -> tuple[list[float], list[float], i
     def world(ngp_lo: float, ngp_hi: float) -> list[float]:
         return [(ngp_lo - o) / scale for o in offset] + [(ngp_hi - o) / scale for o in offset]
 
+    if aabb_scale > MAX_AABB_SCALE:
+        raise DataError(f"{json_path}: aabb_scale {aabb_scale:g} is larger than {MAX_AABB_SCALE} "
+                        f"(the occupancy grid has at most 16 cascades)")
     levels = max(1, 1 + math.ceil(math.log2(aabb_scale)))
     return world(0.5 - aabb_scale / 2, 0.5 + aabb_scale / 2), world(0.0, 1.0), levels, scale
 

@@ -216,8 +216,8 @@ class HashGridEncoding(torch.nn.Module):
         table = level_table(n_input_dims, n_levels, log2_hashmap_size, base_resolution, self.per_level_scale)
         if table.offsets[-1] * n_features_per_level > _MAX_ITEMS:
             raise ValueError("the encoding's table would exceed 2^31 floats; lower log2_hashmap_size or n_levels")
-        for size, hashed in zip(table.sizes, table.hashed):
-            assert not hashed or size & (size - 1) == 0, "hashed levels have 2^log2_hashmap_size entries"
+        if any(hashed and size & (size - 1) for size, hashed in zip(table.sizes, table.hashed)):
+            raise ValueError("hashed levels must have 2^log2_hashmap_size entries")
         self.scales = table.scales
         self.resolutions = table.resolutions
         self.sizes = table.sizes

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ngp_warp.atomic import atomic_dir, atomic_write_text
-from ngp_warp.metrics import psnr, ssim
+from ngp_warp.metrics import SSIM_WINDOW, psnr, ssim
 from ngp_warp.progress import Progress
 from ngp_warp.trainer import Trainer, composite_on
 
@@ -49,7 +49,9 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
         for name, out, gt in iter_test_renders(trainer):
             stem = Path(name).stem
-            p, s = psnr(out["rgb"], gt), ssim(out["rgb"], gt)
+            # SSIM needs an 11-pixel window: images smaller than that get none (null in the JSON).
+            p = psnr(out["rgb"], gt)
+            s = ssim(out["rgb"], gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
             per_image.append({"image": name, "psnr": p, "ssim": s})
             iio.imwrite(renders / f"{stem}.png", to_uint8(out["rgb"]))
             iio.imwrite(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
@@ -57,7 +59,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
         bar.close()
     metrics = {
         "psnr": float(np.mean([m["psnr"] for m in per_image])),
-        "ssim": float(np.mean([m["ssim"] for m in per_image])),
+        "ssim": None if per_image[0]["ssim"] is None else float(np.mean([m["ssim"] for m in per_image])),
         "train_seconds": trainer.train_seconds,
         "steps": trainer.step_count,
         "device": str(trainer.device),

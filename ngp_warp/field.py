@@ -114,17 +114,19 @@ class NGPField(nn.Module):
         x = ((positions - lo) / (hi - lo)).contiguous()
         return self.density_mlp(self.encoding(x))
 
+    def _inside(self, positions: torch.Tensor) -> torch.Tensor:
+        return ((positions >= self.aabb[:3]) & (positions <= self.aabb[3:])).all(-1)
+
     def density(self, positions: torch.Tensor) -> torch.Tensor:
         """σ at positions [N, 3] float32 → [N] float32 (zero outside the box)."""
         h = self._geometry(positions)
-        sigma = trunc_exp(h[:, 0].float())
-        inside = ((positions >= self.aabb[:3]) & (positions <= self.aabb[3:])).all(-1)
-        return sigma * inside
+        return trunc_exp(h[:, 0].float()) * self._inside(positions)
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(σ [N] float32, rgb [N, 3] float32) at positions [N, 3] seen along unit directions [N, 3]."""
+        """(σ [N] float32, zero outside the box; rgb [N, 3] float32) at positions [N, 3] seen along
+        unit directions [N, 3]."""
         h = self._geometry(positions)
-        sigma = trunc_exp(h[:, 0].float())
+        sigma = trunc_exp(h[:, 0].float()) * self._inside(positions)
         sh = spherical_harmonics_deg4(directions).to(h.dtype)
         rgb = torch.sigmoid(self.color_mlp(torch.cat([h, sh], dim=-1)).float())
         return sigma, rgb

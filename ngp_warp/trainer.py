@@ -31,7 +31,7 @@ class TrainConfig:
     loss: str = "l2"                    # "l2" or "huber"
     seed: int = 0
     grid_resolution: int = 128
-    steps_per_diagonal: int = 1024      # marching step = box diagonal / this (√3/1024 for the unit box)
+    steps_per_diagonal: int = 1024      # marching step = finest cascade's diagonal / this
     cone_angle: float = 0.0
     early_stop_eps: float = 1e-4
     mlp_precision: str = "fp32"         # CUDA only: "fp32", "tf32" matmuls, or "bf16" autocast
@@ -72,8 +72,10 @@ class Trainer:
         self.field = NGPField(aabb, cfg.field).to(self.device)
         self.grid = OccupancyGrid(scene.occupancy_aabb, resolution=cfg.grid_resolution,
                                   levels=scene.occupancy_levels).to(self.device)
-        extent = (aabb[3:] - aabb[:3]).norm().item()
-        self.step_size = extent / cfg.steps_per_diagonal
+        # Step on the finest cascade's scale (instant-ngp's √3/1024 of its unit cube), not the
+        # whole field box, which is aabb_scale times larger for instant-ngp scenes.
+        box = scene.occupancy_aabb
+        self.step_size = float((box[3:] - box[:3]).norm()) / cfg.steps_per_diagonal
         self.target_samples = cfg.target_samples or (1 << 18 if self.device.type == "cuda" else 1 << 15)
         self.n_rays = cfg.initial_rays
         self.optimizer = torch.optim.Adam(
@@ -181,7 +183,8 @@ class Trainer:
             spent = self.train_seconds - start_seconds
             if (steps is not None and done_steps >= steps) or (seconds is not None and spent >= seconds):
                 break
-            progress = max(done_steps / steps if steps else 0.0, spent / seconds if seconds else 0.0)
+            progress = max(self.step_count / (start_step + steps) if steps else 0.0,
+                           self.train_seconds / (start_seconds + seconds) if seconds else 0.0)
             stats = self.step(progress)
             if bar.enabled and (self.step_count % 10 == 0 or self.step_count == 1):
                 psnr = -10.0 * math.log10(max(float(stats["mse"]), 1e-10))

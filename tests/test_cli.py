@@ -84,3 +84,30 @@ def test_cuda_request_without_gpu_is_one_line(scene, tmp_path, capsys):
         pytest.skip("this machine has a GPU")
     assert main(["train", str(scene), "--out", str(tmp_path / "o"), "--device", "cuda", "--quiet"]) == 2
     assert "no CUDA GPU" in one_line_error(capsys)
+
+
+def test_resume_keeps_the_recorded_downscale(scene, tmp_path):
+    from ngp_warp.checkpoint import read_checkpoint
+
+    out = tmp_path / "run"
+    common = ["--no-video", *FAST]
+    assert main(["train", str(scene), "--out", str(out), "--steps", "3", "--downscale", "2", *common]) == 0
+    assert main(["train", str(tmp_path / "elsewhere"), "--out", str(out), "--resume", "--steps", "2", *common]) == 0
+    state = read_checkpoint(out / "checkpoint.pt")
+    assert state["scene"]["downscale"] == 2 and state["step"] == 5
+    assert state["scene"]["path"] == str(scene.resolve())
+
+
+def test_bad_numbers_and_video_names_are_refused(scene, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", str(scene), "--out", str(tmp_path / "o"), "--frames", "0"])
+    assert exit_info.value.code == 2
+    assert "positive int" in capsys.readouterr().err
+    assert main(["render", str(tmp_path), "--video", "orbit.avi", "--device", "cpu"]) == 2
+    assert ".mp4 or .gif" in one_line_error(capsys)
+
+
+def test_eval_of_a_missing_folder_creates_nothing(tmp_path, capsys):
+    assert main(["eval", str(tmp_path / "missing"), "--device", "cpu"]) == 2
+    one_line_error(capsys)
+    assert not (tmp_path / "missing").exists()

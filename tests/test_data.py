@@ -338,3 +338,9 @@ def test_generate_rays_rejects_bad_shapes():
                  (c2w, intr, torch.zeros(4, 5), px, px), (c2w.long(), intr, None, px, px), (c2w, intr, None, px, "y")):
         with pytest.raises(ValueError):
             generate_rays(*args)
+
+
+def test_aabb_scale_beyond_the_cascades_is_refused(tmp_path):
+    instant_ngp(tmp_path, n=3, aabb_scale=2**16)
+    with pytest.raises(DataError, match="aabb_scale 65536 is larger than 32768"):
+        load_scene(tmp_path)
