@@ -18,7 +18,8 @@ def test_readme_render_example_trains():
     def next_batch(n=256):
         o = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1) * 4.0
         d = torch.nn.functional.normalize(torch.randn(n, 3) * 0.2 - o, dim=-1)
-        return o, d, target_color.expand(n, 3)
+        device = scope["device"]  # the example picks its device before asking for batches
+        return o.to(device), d.to(device), target_color.expand(n, 3).to(device)
 
     scope = {"next_batch": next_batch}
     exec(compile(code, str(README), "exec"), scope)
