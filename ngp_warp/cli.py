@@ -15,9 +15,10 @@ class UserError(Exception):
 
 def _device(name: str | None) -> str:
     from ngp_warp import _wp
+    from ngp_warp.trainer import default_device
 
     if name in (None, "auto"):
-        return "cuda" if _wp.cuda_available() else "cpu"
+        return default_device()
     if name.startswith("cuda") and not _wp.cuda_available():
         raise UserError(f"--device {name}: no CUDA GPU usable by torch and Warp on this machine (use --device cpu)")
     if name != "cpu" and not name.startswith("cuda"):

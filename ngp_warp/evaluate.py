@@ -37,7 +37,8 @@ def iter_test_renders(trainer: Trainer, every: int = 1):
     white = torch.ones(3, device=trainer.device)
     for i in range(0, len(split.names), every):
         out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
-                                   distortion=split.distortion[i], background=1.0)
+                                   distortion=split.distortion[i] if split.has_distortion else None,
+                                   background=1.0)
         yield split.names[i], out, composite_on(split.images[i].to(trainer.device), white)
 
 

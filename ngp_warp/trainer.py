@@ -173,7 +173,7 @@ class Trainer:
         self.train_seconds += time.perf_counter() - t0
         return stats
 
-    def train(self, show_progress: bool = True, callback=None) -> None:
+    def train(self, show_progress: bool = True) -> None:
         """Train until the step or time budget of the config is spent."""
         steps, seconds = self.config.budget()
         bar = Progress("train", total=steps, seconds=seconds, enabled=show_progress)
@@ -190,15 +190,14 @@ class Trainer:
                 psnr = -10.0 * math.log10(max(float(stats["mse"]), 1e-10))
                 bar.update(done_steps + 1, loss=f"{float(stats['loss']):.4f}", psnr=f"{psnr:.2f}",
                            rays=stats["rays"], samples=stats["samples"])
-            if callback is not None:
-                callback(self, stats)
         bar.close()
 
     # -- inference -------------------------------------------------------------------------
     @torch.no_grad()
     def render_image(self, c2w, intrinsics, width: int, height: int, distortion=None,
                      background: float = 1.0, chunk: int = 1 << 14) -> dict:
-        """Render one camera ([3, 4] c2w, [4] fx fy cx cy) → rgb [H, W, 3], depth/opacity [H, W]."""
+        """Render one camera ([3, 4] c2w, [4] fx fy cx cy, optional [4] k1 k2 p1 p2 distortion;
+        None skips undistortion) → rgb [H, W, 3], depth/opacity [H, W]."""
         self.field.eval()
         dev = self.device
         ys, xs = torch.meshgrid(torch.arange(height, device=dev), torch.arange(width, device=dev), indexing="ij")
@@ -206,8 +205,7 @@ class Trainer:
         n = px.numel()
         c2w = c2w.to(dev).expand(n, 3, 4)
         intr = intrinsics.to(dev).expand(n, 4)
-        has_dist = distortion is not None and bool((distortion != 0).any())
-        dist = distortion.to(dev).expand(n, 4) if has_dist else None
+        dist = None if distortion is None else distortion.to(dev).expand(n, 4)
         bg = torch.full((3,), float(background), device=dev)
         parts = {"rgb": [], "depth": [], "opacity": []}
         for lo in range(0, n, chunk):
