@@ -28,6 +28,7 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
         "field": trainer.field.state_dict(),
         "grid": trainer.grid.state_dict(),
         "optimizer": trainer.optimizer.state_dict(),
+        "averaged": trainer.averaged,
         "step": trainer.step_count,
         "train_seconds": trainer.train_seconds,
         "n_rays": trainer.n_rays,
@@ -67,6 +68,8 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
     trainer.field.load_state_dict(state["field"])
     trainer.grid.load_state_dict(state["grid"])
     trainer.optimizer.load_state_dict(state["optimizer"])
+    if trainer.averaged is not None and state.get("averaged") is not None:
+        torch._foreach_copy_(trainer.averaged, [t.to(trainer.device) for t in state["averaged"]])
     trainer.step_count = state["step"]
     trainer.train_seconds = state["train_seconds"]
     trainer.n_rays = state["n_rays"]

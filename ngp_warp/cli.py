@@ -125,7 +125,7 @@ def demo_config(device: str, steps: int | None, seconds: float | None, seed: int
     if steps is None and seconds is None:
         seconds = 150.0 if device == "cpu" else 30.0
     if device == "cpu":
-        return TrainConfig(steps=steps, seconds=seconds, seed=seed, target_samples=1 << 15,
+        return TrainConfig(steps=steps, seconds=seconds, seed=seed, target_samples=1 << 13,
                            grid_resolution=64, steps_per_diagonal=512,
                            field=FieldConfig(log2_hashmap_size=16, finest_resolution=512.0))
     return TrainConfig(steps=steps, seconds=seconds, seed=seed, field=FieldConfig(finest_resolution=512.0))

@@ -29,6 +29,7 @@ import torch
 from ngp_warp import _wp
 from ngp_warp.kernels import composite as K
 from ngp_warp.occupancy import OccupancyGrid
+from ngp_warp.prune import PrunedSamples, prune_samples
 from ngp_warp.raymarch import ray_marching
 
 FieldFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -66,8 +67,9 @@ class _Composite(torch.autograd.Function):
         has_grads = sum(1 << k for k, g in enumerate(grads) if g is not None)
         if has_grads == 0:
             return None, None, None, None, None, None
-        grad_sigmas = torch.empty_like(sigmas)
-        grad_rgbs = torch.empty_like(rgbs)
+        # Zeros: padding rows past the last ray (see ngp_warp.prune) get no gradient.
+        grad_sigmas = torch.zeros_like(sigmas)
+        grad_rgbs = torch.zeros_like(rgbs)
         _wp.launch(
             K.composite_backward, ray_offsets.shape[0] - 1,
             [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, grad_sigmas, grad_rgbs],
@@ -115,6 +117,18 @@ def _background(background, n_rays: int, device: torch.device) -> torch.Tensor |
     return bg
 
 
+def _prune(samples, sigma_fn, grid: OccupancyGrid, early_stop_eps: float, capacity: int | None) -> PrunedSamples:
+    with torch.no_grad():
+        sigmas = sigma_fn(samples.positions)
+    n = samples.n_samples
+    if not isinstance(sigmas, torch.Tensor) or sigmas.shape[0] != n or sigmas.numel() != n:
+        raise ValueError(f"sigma_fn must return sigmas of shape [{n}] or [{n}, 1], "
+                         f"got {getattr(sigmas, 'shape', type(sigmas).__name__)}")
+    lo, hi = grid.aabb_host[:3], grid.aabb_host[3:]
+    centre = tuple(0.5 * (a + b) for a, b in zip(lo, hi))
+    return prune_samples(samples, sigmas.reshape(n).float().contiguous(), early_stop_eps, capacity, centre)
+
+
 def render_rays(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
@@ -131,6 +145,8 @@ def render_rays(
     stratified: bool = False,
     max_samples_per_ray: int | None = None,
     max_samples: int | None = None,
+    sigma_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    sample_capacity: int | None = None,
     return_samples: bool = False,
 ) -> dict:
     """Render rays through ``grid`` with the radiance field ``field_fn``.
@@ -152,21 +168,41 @@ def render_rays(
         early_stop_eps: samples behind transmittance ``< early_stop_eps`` contribute nothing
             (the field is still evaluated on them).
         background: None, a float, [3] or [N, 3] colour blended behind the samples.
+        sigma_fn: ``positions [S, 3] → σ [S]``; when given, it is evaluated without gradient on
+            every marched sample and only the samples that composite (transmittance in front
+            ``≥ early_stop_eps``) go to ``field_fn`` (see :func:`ngp_warp.prune_samples`).
+        sample_capacity: with ``sigma_fn``, ``field_fn`` always gets exactly this many rows
+            (padding rows at the grid's centre), so its shapes are fixed; rays that do not fit
+            are dropped and flagged in ``ray_mask``.
         return_samples: also return the packed samples and their differentiable weights.
 
     Returns:
         dict with ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] (float32, differentiable w.r.t.
-        the field) and ``n_samples`` (int); with ``return_samples`` also ``weights`` [S],
-        ``ray_indices`` [S] int64, ``t_starts`` [S], ``t_ends`` [S].
+        the field) and ``n_samples`` (int, rows given to ``field_fn``); with ``sigma_fn`` also
+        ``n_marched`` (int), ``n_contributing`` ([1] int32 on the device) and ``ray_mask``
+        ([N] bool, False for dropped rays, which render as background); with
+        ``return_samples`` also ``weights`` [S], ``ray_indices`` [S] int64, ``t_starts`` [S],
+        ``t_ends`` [S].
     """
     if early_stop_eps < 0:
         raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
+    if sample_capacity is not None and (sigma_fn is None or sample_capacity < 1):
+        raise ValueError("sample_capacity needs a sigma_fn and must be ≥ 1")
     samples = ray_marching(
         rays_o, rays_d, grid, near=near, far=far, step_size=step_size, cone_angle=cone_angle, max_step=max_step,
         stratified=stratified, max_samples_per_ray=max_samples_per_ray, max_samples=max_samples,
     )
-    n_rays, n_samples, dev = rays_o.shape[0], samples.n_samples, rays_o.device
+    n_rays, dev = rays_o.shape[0], rays_o.device
     bg = _background(background, n_rays, dev)
+    extra = {}
+    if sigma_fn is not None:
+        extra = {"n_marched": samples.n_samples, "ray_mask": torch.ones(n_rays, dtype=torch.bool, device=dev),
+                 "n_contributing": torch.zeros(1, dtype=torch.int32, device=dev)}
+        if samples.n_samples > 0:
+            pruned = _prune(samples, sigma_fn, grid, early_stop_eps, sample_capacity)
+            samples = pruned.samples
+            extra.update(ray_mask=pruned.ray_mask, n_contributing=pruned.n_contributing)
+    n_samples = samples.n_samples
     if n_samples == 0:
         rgb = torch.zeros(n_rays, 3, device=dev)
         opacity = torch.zeros(n_rays, device=dev)
@@ -186,7 +222,7 @@ def render_rays(
         )
     if bg is not None:
         rgb = rgb + bg * (1.0 - opacity)[:, None]
-    out = {"rgb": rgb, "opacity": opacity, "depth": depth, "n_samples": n_samples}
+    out = {"rgb": rgb, "opacity": opacity, "depth": depth, "n_samples": n_samples, **extra}
     if return_samples:
         out.update(weights=weights, ray_indices=samples.ray_indices, t_starts=samples.t_starts,
                    t_ends=samples.t_ends)

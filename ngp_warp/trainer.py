@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -23,7 +24,8 @@ class TrainConfig:
 
     steps: int | None = None            # stop after this many steps ...
     seconds: float | None = None        # ... or after this much training wall-clock
-    target_samples: int | None = None   # samples per batch to hold (2^18 CUDA, 2^15 CPU)
+    target_samples: int | None = None   # samples per batch to hold (2^17 CUDA, 2^15 CPU); with
+                                        # prune, samples that composite (the rows trained on)
     initial_rays: int = 1024
     max_rays: int = 1 << 18
     lr: float = 1e-2
@@ -35,12 +37,49 @@ class TrainConfig:
     cone_angle: float = 0.0
     early_stop_eps: float = 1e-4
     mlp_precision: str = "fp32"         # CUDA only: "fp32", "tf32" matmuls, or "bf16" autocast
+    prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
+    cuda_graph: bool = True             # CUDA with prune: replay the field's forward/backward as graphs
+    weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def budget(self) -> tuple[int | None, float | None]:
         if self.steps is None and self.seconds is None:
             return 20000, None
         return self.steps, self.seconds
+
+
+def apply_overrides(config: TrainConfig, settings: list[str]) -> TrainConfig:
+    """A copy of ``config`` with ``key=value`` settings applied (``field.key`` for the field's
+    sizes); values take the type of the current value. Raises ValueError on unknown keys or
+    values that do not parse."""
+    config = dataclasses.replace(config, field=dataclasses.replace(config.field))
+    for item in settings:
+        key, sep, text = item.partition("=")
+        target, name = (config.field, key[6:]) if key.startswith("field.") else (config, key)
+        names = {f.name for f in dataclasses.fields(target)} - {"field"}
+        if not sep or name not in names:
+            raise ValueError(f"unknown setting {item!r}; expected key=value with key one of "
+                             f"{', '.join(sorted(names | {'field.' + n for n in _field_names()}))}")
+        setattr(target, name, _parse_value(getattr(target, name), text, key))
+    return config
+
+
+def _field_names() -> list[str]:
+    return [f.name for f in dataclasses.fields(FieldConfig)]
+
+
+def _parse_value(current, text: str, key: str):
+    if isinstance(current, bool):
+        if text.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(f"{key} takes true or false, got {text!r}")
+        return text.lower() in ("true", "1")
+    kinds = [type(current)] if current is not None else [int, float]
+    for kind in kinds:
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    raise ValueError(f"{key} takes a {kinds[0].__name__}, got {text!r}")
 
 
 def default_device() -> str:
@@ -64,6 +103,8 @@ class Trainer:
 
     def __init__(self, scene: Scene, config: TrainConfig | None = None, device: str | None = None):
         self.config = cfg = config or TrainConfig()
+        if cfg.loss not in ("l2", "huber"):
+            raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
         self.device = torch.device(device or default_device())
         torch.manual_seed(cfg.seed)
         self.scene = scene
@@ -76,7 +117,7 @@ class Trainer:
         # whole field box, which is aabb_scale times larger for instant-ngp scenes.
         box = scene.occupancy_aabb
         self.step_size = float((box[3:] - box[:3]).norm()) / cfg.steps_per_diagonal
-        self.target_samples = cfg.target_samples or (1 << 18 if self.device.type == "cuda" else 1 << 15)
+        self.target_samples = cfg.target_samples or (1 << 17 if self.device.type == "cuda" else 1 << 15)
         self.n_rays = cfg.initial_rays
         self.optimizer = torch.optim.Adam(
             [
@@ -88,6 +129,12 @@ class Trainer:
         )
         self.step_count = 0
         self.train_seconds = 0.0
+        self._contributing_host: torch.Tensor | None = None  # pinned copy of the last step's count
+        self._marched_before = 0
+        self._fraction = 1.0  # contributing / marched samples, from the step before
+        self._graphed_field = None  # captured on first use (see field_fn)
+        # Exponential moving average of the weights, used for rendering when enabled.
+        self.averaged = [p.detach().clone() for p in self.field.parameters()] if cfg.weight_average > 0 else None
         self.grid.mark_invisible_cells(
             self.train_split.c2w, self.train_split.intrinsics, self.train_split.width, self.train_split.height
         )
@@ -103,7 +150,18 @@ class Trainer:
         return self.field.density(x) * self.step_size
 
     def field_fn(self, positions: torch.Tensor, directions: torch.Tensor):
+        """The field; in CUDA training with pruning, its forward and backward replay CUDA graphs
+        captured for the fixed ``target_samples`` rows (one launch each instead of ~70)."""
+        if self.field.training and positions.shape[0] == self.target_samples and self._graphs_apply():
+            if self._graphed_field is None:
+                self._graphed_field = torch.cuda.make_graphed_callables(
+                    self.field, (positions.detach().clone(), directions.detach().clone()))
+            return self._graphed_field(positions, directions)
         return self.field(positions, directions)
+
+    def _graphs_apply(self) -> bool:
+        cfg = self.config
+        return cfg.cuda_graph and cfg.prune and self.device.type == "cuda" and cfg.mlp_precision != "bf16"
 
     @contextlib.contextmanager
     def _mlp_precision(self):
@@ -125,11 +183,17 @@ class Trainer:
             raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {mode!r}")
 
     def render(self, rays_o, rays_d, background, stratified: bool) -> dict:
+        """Render rays. In training with ``prune``, only the samples that composite go through
+        the field with gradients: on CUDA packed into ``target_samples`` rows (fixed shapes, no
+        extra sync), on the CPU (where a sync costs nothing) sized to fit."""
+        prune = self.config.prune and self.field.training
+        capacity = self.target_samples if prune and self.device.type == "cuda" else None
         return render_rays(
             rays_o, rays_d, self.grid, self.field_fn,
             near=self.scene.near, far=1e4, step_size=self.step_size,
             cone_angle=self.config.cone_angle, early_stop_eps=self.config.early_stop_eps,
             background=background, stratified=stratified,
+            sigma_fn=self.field.density if prune else None, sample_capacity=capacity,
         )
 
     def sample_batch(self, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -154,24 +218,69 @@ class Trainer:
         rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
         with self._mlp_precision():
             out = self.render(rays_o, rays_d, background, stratified=True)
-            n_samples = int(out["n_samples"])
+            mask = out.get("ray_mask")  # rays dropped for lack of room in the buffer are left out
+
+            def mean_over_rays(x: torch.Tensor) -> torch.Tensor:
+                return x.mean() if mask is None else (x * mask).sum() / mask.sum().clamp_min(1)
+
+            squared = (out["rgb"] - target).square().mean(-1)
             if self.config.loss == "huber":
-                loss = F.huber_loss(out["rgb"], target, delta=0.1)
+                loss = mean_over_rays(F.huber_loss(out["rgb"], target, delta=0.1, reduction="none").mean(-1))
             else:
-                loss = F.mse_loss(out["rgb"], target)
+                loss = mean_over_rays(squared)
             self.optimizer.zero_grad(set_to_none=True)
-            if n_samples > 0:
+            if out["n_samples"] > 0:
                 loss.backward()
                 self.optimizer.step()
-        mse = F.mse_loss(out["rgb"].detach(), target)
-        stats = {"loss": loss.detach(), "mse": mse, "rays": self.n_rays, "samples": n_samples}
+                self._update_average()
+        n_samples = self._samples_in_use(out)
+        stats = {"loss": loss.detach(), "mse": mean_over_rays(squared.detach()), "rays": self.n_rays,
+                 "samples": n_samples}
         # Hold the sample count: scale the ray count by target / actual (smoothed, clamped).
         ratio = self.target_samples / max(n_samples, 1)
         new = self.n_rays * min(max(ratio, 0.5), 2.0) ** 0.5
-        self.n_rays = int(min(max(256, round(new / 256) * 256), self.config.max_rays))
+        self.n_rays = int(min(max(256, round(new / 128) * 128), self.config.max_rays))
         self.step_count += 1
         self.train_seconds += time.perf_counter() - t0
         return stats
+
+    def _samples_in_use(self, out: dict) -> int:
+        """Samples this step trained on. Without pruning, the marched count. With it, the
+        contributing count is on the device; reading it would sync, so it is estimated as the
+        marched count times the previous step's contributing fraction (read from a copy
+        that has long finished)."""
+        if "n_marched" not in out:
+            return int(out["n_samples"])
+        marched = out["n_marched"]
+        if self._contributing_host is None:
+            pin = self.device.type == "cuda"
+            self._contributing_host = torch.zeros(1, dtype=torch.int32, pin_memory=pin)
+        elif self._marched_before > 0:  # the previous step's copy is done: this step's march synced
+            self._fraction = min(1.0, int(self._contributing_host) / self._marched_before)
+        self._contributing_host.copy_(out["n_contributing"], non_blocking=True)
+        self._marched_before = marched
+        return int(marched * self._fraction)
+
+    def _update_average(self) -> None:
+        if self.averaged is None:
+            return
+        # Short memory early on so the random initial weights wash out quickly.
+        decay = min(self.config.weight_average, (1 + self.step_count) / (10 + self.step_count))
+        torch._foreach_lerp_(self.averaged, [p.detach() for p in self.field.parameters()], 1.0 - decay)
+
+    @contextlib.contextmanager
+    def _render_weights(self):
+        """The averaged weights in the field while rendering (when averaging is on)."""
+        if self.averaged is None:
+            yield
+            return
+        params = [p.data for p in self.field.parameters()]
+        live = [p.clone() for p in params]
+        torch._foreach_copy_(params, self.averaged)
+        try:
+            yield
+        finally:
+            torch._foreach_copy_(params, live)
 
     def train(self, show_progress: bool = True) -> None:
         """Train until the step or time budget of the config is spent."""
@@ -199,6 +308,10 @@ class Trainer:
         """Render one camera ([3, 4] c2w, [4] fx fy cx cy, optional [4] k1 k2 p1 p2 distortion;
         None skips undistortion) → rgb [H, W, 3], depth/opacity [H, W]."""
         self.field.eval()
+        with self._render_weights():
+            return self._render_image(c2w, intrinsics, width, height, distortion, background, chunk)
+
+    def _render_image(self, c2w, intrinsics, width, height, distortion, background, chunk) -> dict:
         dev = self.device
         ys, xs = torch.meshgrid(torch.arange(height, device=dev), torch.arange(width, device=dev), indexing="ij")
         px, py = xs.reshape(-1), ys.reshape(-1)

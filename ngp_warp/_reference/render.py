@@ -49,6 +49,18 @@ def composite_ref(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays: int, earl
     )
 
 
+def contributing_ref(sigmas, t_starts, t_ends, ray_indices, n_rays: int, early_stop_eps: float):
+    """[S] bool: the samples that composite (transmittance in front ≥ eps) and [S] float64 T."""
+    offsets = ray_offsets_ref(ray_indices, n_rays).tolist()
+    keep, trans = [], []
+    for r in range(n_rays):
+        s = slice(offsets[r], offsets[r + 1])
+        _, _, t, _, k = _ray_terms(sigmas[s], t_starts[s], t_ends[s], early_stop_eps)
+        keep.append(k.bool())
+        trans.append(t)
+    return torch.cat(keep), torch.cat(trans)
+
+
 def composite_backward_ref(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, g_rgb, g_opacity, g_depth,
                            g_weights=None, early_stop_eps: float = 0.0):
     """Twin of the backward kernel: with v_i = c_i·g_C + m_i g_D + g_O + g_w_i,
