@@ -68,8 +68,9 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
     trainer.field.load_state_dict(state["field"])
     trainer.grid.load_state_dict(state["grid"])
     trainer.optimizer.load_state_dict(state["optimizer"])
-    if trainer.averaged is not None and state.get("averaged") is not None:
-        torch._foreach_copy_(trainer.averaged, [t.to(trainer.device) for t in state["averaged"]])
+    if trainer.averaged is not None:  # checkpoints from before weight averaging start it from the weights
+        saved = state.get("averaged") or [p.detach() for p in trainer.field.parameters()]
+        torch._foreach_copy_(trainer.averaged, [t.to(trainer.device) for t in saved])
     trainer.step_count = state["step"]
     trainer.train_seconds = state["train_seconds"]
     trainer.n_rays = state["n_rays"]

@@ -154,6 +154,9 @@ class Trainer:
         captured for the fixed ``target_samples`` rows (one launch each instead of ~70)."""
         if self.field.training and positions.shape[0] == self.target_samples and self._graphs_apply():
             if self._graphed_field is None:
+                # The capture's warm-up runs on a side stream, so autograd would warn that the
+                # parameters' gradients arrive from another stream; that is expected here.
+                torch.autograd.graph.set_warn_on_accumulate_grad_stream_mismatch(False)
                 self._graphed_field = torch.cuda.make_graphed_callables(
                     self.field, (positions.detach().clone(), directions.detach().clone()))
             return self._graphed_field(positions, directions)

@@ -68,6 +68,20 @@ def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path):
     assert loaded.step_count == 45
 
 
+def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp_path):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(10), device="cpu")
+    trainer.train(show_progress=False)
+    ckpt = tmp_path / "checkpoint.pt"
+    save_checkpoint(trainer, ckpt, tiny_scene, downscale=1)
+    state = torch.load(ckpt, weights_only=False)
+    assert state["averaged"] is not None
+    del state["averaged"]  # as written before weight averaging existed
+    torch.save(state, ckpt)
+    loaded, _ = load_trainer(ckpt, device="cpu")
+    for averaged, p in zip(loaded.averaged, loaded.field.parameters()):
+        assert torch.equal(averaged, p.detach())
+
+
 def test_checkpoint_errors_are_one_line(tmp_path):
     with pytest.raises(CheckpointError, match="no checkpoint there"):
         read_checkpoint(tmp_path / "missing.pt")

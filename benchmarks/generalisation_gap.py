@@ -1,0 +1,76 @@
+"""Training-view versus test-view PSNR during one run: is the model overfitting?
+
+    python benchmarks/generalisation_gap.py ../shared/data/lego_half [--checkpoints 30,120] [--set KEY=VALUE]
+
+Trains with the defaults (plus ``--set`` overrides as in ``bench_train.py``; the
+learning-rate schedule runs over ``seconds``, 300 by default) and at each checkpoint renders every
+8th test view and every 4th training view the same way (white background), plus the test views
+averaged over 4 renders with jittered sample offsets ("4 spp").
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from bench_train import warm_up
+from ngp_warp.data import Split, generate_rays, load_scene
+from ngp_warp.metrics import psnr
+from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides, composite_on
+
+
+@torch.no_grad()
+def render(trainer: Trainer, split: Split, i: int, spp: int, chunk: int = 1 << 15) -> torch.Tensor:
+    """View i of ``split`` on white; spp > 1 averages renders with jittered sample offsets."""
+    dev = trainer.device
+    trainer.field.eval()
+    ys, xs = torch.meshgrid(torch.arange(split.height, device=dev), torch.arange(split.width, device=dev),
+                            indexing="ij")
+    px, py = xs.reshape(-1), ys.reshape(-1)
+    n = px.numel()
+    rays_o, rays_d = generate_rays(split.c2w[i].to(dev).expand(n, 3, 4), split.intrinsics[i].to(dev).expand(n, 4),
+                                   None, px, py)
+    white = torch.ones(3, device=dev)
+    total = torch.zeros(n, 3, device=dev)
+    with trainer._render_weights():
+        for _ in range(spp):
+            total += torch.cat([trainer.render(rays_o[lo:lo + chunk], rays_d[lo:lo + chunk], white,
+                                               stratified=spp > 1)["rgb"] for lo in range(0, n, chunk)])
+    return (total / spp).reshape(split.height, split.width, 3).clamp(0, 1)
+
+
+def mean_psnr(trainer: Trainer, split: Split, every: int, spp: int = 1) -> float:
+    white = torch.ones(3, device=trainer.device)
+    return float(np.mean([psnr(render(trainer, split, i, spp), composite_on(split.images[i].to(trainer.device), white))
+                          for i in range(0, len(split.names), every)]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--checkpoints", default="30,120")
+    args = ap.parse_args()
+
+    scene = load_scene(args.scene)
+    cfg = apply_overrides(TrainConfig(seconds=300.0), args.set)
+    warm_up(scene, cfg, args.device)
+    trainer = Trainer(scene, cfg, device=args.device)
+    print("| train s | steps | test PSNR | test, 4 spp | training-view PSNR |")
+    print("| ---: | ---: | ---: | ---: | ---: |")
+    for mark in (float(s) for s in args.checkpoints.split(",")):
+        while trainer.train_seconds < mark:
+            trainer.step(progress=trainer.train_seconds / cfg.seconds)
+        start = time.perf_counter()
+        row = (mean_psnr(trainer, scene.test, 8), mean_psnr(trainer, scene.test, 8, spp=4),
+               mean_psnr(trainer, trainer.train_split, 4))
+        print(f"| {mark:.0f} | {trainer.step_count} | " + " | ".join(f"{v:.2f}" for v in row) +
+              f" |   ({time.perf_counter() - start:.0f} s to evaluate)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
