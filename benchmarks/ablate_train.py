@@ -1,7 +1,7 @@
 """Compare training settings on one scene: test PSNR at a few checkpoints for each variant.
 
     python benchmarks/ablate_train.py ../shared/data/lego_half --checkpoints 15,60 --test-every 8 \\
-        --variant base: --variant jitter:pixel_jitter=true --variant fine1k:field.finest_resolution=1024
+        --variant base: --variant ema0:weight_average=0 --variant fine1k:field.finest_resolution=1024
 
 A variant is ``NAME:KEY=VALUE,KEY=VALUE`` with keys as in ``bench_train.py --set``; every variant
 starts from the same defaults and seed. The scene is loaded and the kernels compiled once.
@@ -10,6 +10,7 @@ starts from the same defaults and seed. The scene is loaded and the kernels comp
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import time
 from pathlib import Path
@@ -36,7 +37,10 @@ def main() -> None:
     variants = []
     for spec in args.variant:
         name, _, settings = spec.partition(":")
-        cfg = apply_overrides(TrainConfig(seconds=marks[-1]), [s for s in settings.split(",") if s])
+        try:
+            cfg = apply_overrides(TrainConfig(seconds=marks[-1]), [s for s in settings.split(",") if s])
+        except ValueError as e:
+            ap.error(f"variant {name}: {e}")
         variants.append((name, cfg))
     results = {}
     for i, (name, cfg) in enumerate(variants):
@@ -48,6 +52,7 @@ def main() -> None:
         results[name] = train_and_evaluate(Trainer(scene, cfg, device=args.device), marks, args.test_every)
         if args.json:
             Path(args.json).write_text(json.dumps(results, indent=2))
+        gc.collect()  # a captured graph holds a reference cycle: free the last variant's memory
         if torch.cuda.is_available():
             torch.cuda.empty_cache()
 

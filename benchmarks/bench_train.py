@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import json
 import os
 import subprocess
@@ -69,6 +70,8 @@ def warm_up(scene, cfg: TrainConfig, device: str) -> None:
     trainer.render_image(split.c2w[0], split.intrinsics[0], 8, 8)
     if trainer.device.type == "cuda":
         torch.cuda.synchronize(trainer.device)
+    del trainer
+    gc.collect()  # the captured graph holds a reference cycle: free its memory now
 
 
 def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int) -> list[dict]:
@@ -117,7 +120,10 @@ def main() -> None:
 
     marks = [float(s) for s in args.checkpoints.split(",")]
     scene = load_scene(args.scene, downscale=args.downscale)
-    cfg = apply_overrides(TrainConfig(seconds=marks[-1], target_samples=args.target_samples), args.set)
+    try:
+        cfg = apply_overrides(TrainConfig(seconds=marks[-1], target_samples=args.target_samples), args.set)
+    except ValueError as e:
+        ap.error(str(e))
     warm_up(scene, cfg, args.device)
     trainer = Trainer(scene, cfg, device=args.device)
     dev = trainer.device

@@ -57,7 +57,10 @@ def main() -> None:
     args = ap.parse_args()
 
     scene = load_scene(args.scene)
-    cfg = apply_overrides(TrainConfig(seconds=300.0), args.set)
+    try:
+        cfg = apply_overrides(TrainConfig(seconds=300.0), args.set)
+    except ValueError as e:
+        ap.error(str(e))
     warm_up(scene, cfg, args.device)
     trainer = Trainer(scene, cfg, device=args.device)
     print("| train s | steps | test PSNR | test, 4 spp | training-view PSNR |")

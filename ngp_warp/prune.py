@@ -34,7 +34,9 @@ class PrunedSamples:
         samples: the kept samples (sorted by ray, front to back); with a capacity, then padding
             rows up to it: ray index ``n_rays``, empty interval ``[0, 0]``, at ``pad_position``.
         ray_mask: [n_rays] bool, rays whose contributing samples were all kept (False: dropped
-            for lack of room; such rays have no samples).
+            for lack of room; such rays have no samples). Padding rows carry weight 0 in
+            :func:`ngp_warp.render_rays`; their ray index ``n_rays`` is out of range, so index
+            per-ray tensors with the kept rows only (``ray_offsets[-1]`` of them).
         n_contributing: [1] int32 on the device, contributing samples of all rays (before the
             capacity cut).
     """
@@ -85,8 +87,9 @@ def prune_samples(
     n_contributing = inclusive[-1:] if n_rays else counts.new_zeros(1)
     if capacity is None:
         capacity = int(n_contributing)  # the host synchronisation that sizes the output
-    ray_mask = inclusive <= capacity
-    kept = torch.where(ray_mask, counts, 0)
+    fits = inclusive <= capacity
+    kept = torch.where(fits, counts, 0)
+    ray_mask = fits | (counts == 0)
     new_offsets = torch.zeros(n_rays + 1, dtype=torch.int32, device=dev)
     torch.cumsum(kept, 0, dtype=torch.int32, out=new_offsets[1:])
     ray_indices = torch.empty(capacity, dtype=torch.int64, device=dev)

@@ -50,7 +50,7 @@ class _Composite(torch.autograd.Function):
         opacity = torch.empty(n_rays, dtype=torch.float32, device=dev)
         depth = torch.empty(n_rays, dtype=torch.float32, device=dev)
         trans = torch.empty(n_samples, dtype=torch.float32, device=dev)
-        weights = torch.empty(n_samples, dtype=torch.float32, device=dev)
+        weights = torch.zeros(n_samples, dtype=torch.float32, device=dev)  # padding rows stay 0
         _wp.launch(
             K.composite_forward, n_rays,
             [sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps), rgb, opacity, depth, trans, weights],
@@ -166,14 +166,14 @@ def render_rays(
         near, far, step_size, cone_angle, max_step, stratified, max_samples_per_ray, max_samples:
             as in :func:`ngp_warp.ray_marching` (``step_size`` defaults to the box diagonal / 1024).
         early_stop_eps: samples behind transmittance ``< early_stop_eps`` contribute nothing
-            (the field is still evaluated on them).
+            (the field is still evaluated on them, unless ``sigma_fn`` prunes them first).
         background: None, a float, [3] or [N, 3] colour blended behind the samples.
         sigma_fn: ``positions [S, 3] → σ [S]``; when given, it is evaluated without gradient on
             every marched sample and only the samples that composite (transmittance in front
             ``≥ early_stop_eps``) go to ``field_fn`` (see :func:`ngp_warp.prune_samples`).
-        sample_capacity: with ``sigma_fn``, ``field_fn`` always gets exactly this many rows
-            (padding rows at the grid's centre), so its shapes are fixed; rays that do not fit
-            are dropped and flagged in ``ray_mask``.
+        sample_capacity: with ``sigma_fn``, ``field_fn`` gets exactly this many rows whenever
+            any sample was marched (padding rows at the grid's centre, with zero weight), so its
+            shapes are fixed; rays that do not fit are dropped and flagged in ``ray_mask``.
         return_samples: also return the packed samples and their differentiable weights.
 
     Returns:

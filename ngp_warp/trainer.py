@@ -79,7 +79,8 @@ def _parse_value(current, text: str, key: str):
             return kind(text)
         except ValueError:
             pass
-    raise ValueError(f"{key} takes a {kinds[0].__name__}, got {text!r}")
+    names = {int: "an integer", float: "a number", str: "a string"}
+    raise ValueError(f"{key} takes {names.get(kinds[-1], kinds[-1].__name__)}, got {text!r}")
 
 
 def default_device() -> str:
@@ -98,6 +99,17 @@ def composite_on(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     return px[..., :3] * a + background * (1.0 - a)
 
 
+class _FieldForward(torch.nn.Module):
+    """The field's forward as its own module (its parameters are the field's)."""
+
+    def __init__(self, field: NGPField):
+        super().__init__()
+        self.field = field
+
+    def forward(self, positions: torch.Tensor, directions: torch.Tensor):
+        return self.field(positions, directions)
+
+
 class Trainer:
     """Holds the field, occupancy grid and optimizer of one scene; :meth:`step` is one update."""
 
@@ -105,6 +117,10 @@ class Trainer:
         self.config = cfg = config or TrainConfig()
         if cfg.loss not in ("l2", "huber"):
             raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
+        if cfg.mlp_precision not in ("fp32", "tf32", "bf16"):
+            raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {cfg.mlp_precision!r}")
+        if not 0.0 <= cfg.weight_average < 1.0:
+            raise ValueError(f"weight_average must be in [0, 1), got {cfg.weight_average}")
         self.device = torch.device(device or default_device())
         torch.manual_seed(cfg.seed)
         self.scene = scene
@@ -156,9 +172,13 @@ class Trainer:
             if self._graphed_field is None:
                 # The capture's warm-up runs on a side stream, so autograd would warn that the
                 # parameters' gradients arrive from another stream; that is expected here.
-                torch.autograd.graph.set_warn_on_accumulate_grad_stream_mismatch(False)
+                quiet = getattr(torch.autograd.graph, "set_warn_on_accumulate_grad_stream_mismatch", None)
+                if quiet is not None:
+                    quiet(False)
+                # Capture a wrapper: make_graphed_callables replaces the captured module's
+                # forward, and the field itself must stay callable at any size.
                 self._graphed_field = torch.cuda.make_graphed_callables(
-                    self.field, (positions.detach().clone(), directions.detach().clone()))
+                    _FieldForward(self.field), (positions.detach().clone(), directions.detach().clone()))
             return self._graphed_field(positions, directions)
         return self.field(positions, directions)
 
@@ -248,10 +268,11 @@ class Trainer:
         return stats
 
     def _samples_in_use(self, out: dict) -> int:
-        """Samples this step trained on. Without pruning, the marched count. With it, the
-        contributing count is on the device; reading it would sync, so it is estimated as the
-        marched count times the previous step's contributing fraction (read from a copy
-        that has long finished)."""
+        """The sample count the ray count is steered by. Without pruning, the marched count.
+        With it, the contributing count (before the capacity cut, so it may exceed it; the
+        rays past the capacity are dropped): reading it would sync, so it is estimated as the
+        marched count times the previous step's contributing fraction (read from a copy that
+        has long finished: this step's march synchronised after it)."""
         if "n_marched" not in out:
             return int(out["n_samples"])
         marched = out["n_marched"]

@@ -56,9 +56,13 @@ def test_capacity_packs_a_fixed_buffer_and_drops_rays_that_do_not_fit():
         out = prune_samples(samples, sigmas, 1e-2, capacity=capacity, pad_position=(0.5, 0.25, 0.75))
         s = out.samples
         assert s.n_samples == capacity and int(out.n_contributing) == total
-        mask = out.ray_mask
-        kept_rays = int(mask.sum())
-        assert mask[:kept_rays].all() and not mask[kept_rays:].any()  # a prefix of the rays fits
+        ends = full.samples.ray_offsets[1:]
+        fits = ends <= capacity  # a prefix of the rays fits whole
+        kept_rays = int(fits.sum())
+        assert fits[:kept_rays].all() and not fits[kept_rays:].any()
+        empty = torch.diff(full.samples.ray_offsets) == 0
+        assert torch.equal(out.ray_mask, fits | empty)  # rays without samples lose nothing
+        assert capacity > total or (empty[kept_rays:].any() and not out.ray_mask[kept_rays:].all())
         end = int(s.ray_offsets[-1])
         assert end == int(full.samples.ray_offsets[kept_rays]) <= capacity
         assert capacity < total or kept_rays == 40

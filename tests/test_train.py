@@ -9,7 +9,7 @@ from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.field import FieldConfig
 from ngp_warp.metrics import psnr
 from ngp_warp.scene import write_demo_scene
-from ngp_warp.trainer import TrainConfig, Trainer
+from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +82,19 @@ def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp
         assert torch.equal(averaged, p.detach())
 
 
+def test_settings_override_a_copy_of_the_config(tiny_scene):
+    base = TrainConfig()
+    cfg = apply_overrides(base, ["loss=huber", "seconds=60", "prune=false", "field.finest_resolution=1024"])
+    assert (cfg.loss, cfg.seconds, cfg.prune, cfg.field.finest_resolution) == ("huber", 60, False, 1024.0)
+    assert (base.loss, base.seconds, base.prune, base.field.finest_resolution) == ("l2", None, True, 2048.0)
+    for bad, message in [("nope=1", "unknown setting"), ("loss", "unknown setting"),
+                         ("field.hidden=x", "an integer"), ("prune=maybe", "true or false")]:
+        with pytest.raises(ValueError, match=message):
+            apply_overrides(base, [bad])
+    with pytest.raises(ValueError, match="mlp_precision"):
+        Trainer(load_scene(tiny_scene), apply_overrides(base, ["mlp_precision=fp8"]), device="cpu")
+
+
 def test_checkpoint_errors_are_one_line(tmp_path):
     with pytest.raises(CheckpointError, match="no checkpoint there"):
         read_checkpoint(tmp_path / "missing.pt")
@@ -99,6 +112,7 @@ def test_cuda_graph_field_matches_the_eager_field(tiny_scene):
     trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cuda")
     trainer.train(show_progress=False)
     assert trainer._graphed_field is not None  # training went through the captured graphs
+    assert trainer.field.forward.__func__ is type(trainer.field).forward  # the field itself stays eager
     n, field = trainer.target_samples, trainer.field
     g = torch.Generator(device="cuda").manual_seed(0)
     lo, hi = field.aabb[:3], field.aabb[3:]
