@@ -17,35 +17,14 @@ import numpy as np
 import torch
 
 from bench_train import warm_up
-from ngp_warp.data import Split, generate_rays, load_scene
+from ngp_warp.data import Split, load_scene
+from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.metrics import psnr
-from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides, composite_on
-
-
-@torch.no_grad()
-def render(trainer: Trainer, split: Split, i: int, spp: int, chunk: int = 1 << 15) -> torch.Tensor:
-    """View i of ``split`` on white; spp > 1 averages renders with jittered sample offsets."""
-    dev = trainer.device
-    trainer.field.eval()
-    ys, xs = torch.meshgrid(torch.arange(split.height, device=dev), torch.arange(split.width, device=dev),
-                            indexing="ij")
-    px, py = xs.reshape(-1), ys.reshape(-1)
-    n = px.numel()
-    rays_o, rays_d = generate_rays(split.c2w[i].to(dev).expand(n, 3, 4), split.intrinsics[i].to(dev).expand(n, 4),
-                                   None, px, py)
-    white = torch.ones(3, device=dev)
-    total = torch.zeros(n, 3, device=dev)
-    with trainer._render_weights():
-        for _ in range(spp):
-            total += torch.cat([trainer.render(rays_o[lo:lo + chunk], rays_d[lo:lo + chunk], white,
-                                               stratified=spp > 1)["rgb"] for lo in range(0, n, chunk)])
-    return (total / spp).reshape(split.height, split.width, 3).clamp(0, 1)
+from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
 
 
 def mean_psnr(trainer: Trainer, split: Split, every: int, spp: int = 1) -> float:
-    white = torch.ones(3, device=trainer.device)
-    return float(np.mean([psnr(render(trainer, split, i, spp), composite_on(split.images[i].to(trainer.device), white))
-                          for i in range(0, len(split.names), every)]))
+    return float(np.mean([psnr(out["rgb"], gt) for _, out, gt in iter_test_renders(trainer, every, split, spp)]))
 
 
 def main() -> None:
@@ -70,7 +49,7 @@ def main() -> None:
             trainer.step(progress=trainer.train_seconds / cfg.seconds)
         start = time.perf_counter()
         row = (mean_psnr(trainer, scene.test, 8), mean_psnr(trainer, scene.test, 8, spp=4),
-               mean_psnr(trainer, trainer.train_split, 4))
+               mean_psnr(trainer, scene.train, 4))
         print(f"| {mark:.0f} | {trainer.step_count} | " + " | ".join(f"{v:.2f}" for v in row) +
               f" |   ({time.perf_counter() - start:.0f} s to evaluate)", flush=True)
 

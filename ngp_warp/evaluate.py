@@ -30,15 +30,16 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
 
-def iter_test_renders(trainer: Trainer, every: int = 1):
-    """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th test view,
-    rendered and composited on white."""
-    split = trainer.scene.test
+def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1):
+    """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th view of
+    ``split`` (default: the test split), rendered (``spp`` as in ``Trainer.render_image``) and
+    composited on white."""
+    split = trainer.scene.test if split is None else split
     white = torch.ones(3, device=trainer.device)
     for i in range(0, len(split.names), every):
         out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
                                    distortion=split.distortion[i] if split.has_distortion else None,
-                                   background=1.0)
+                                   background=1.0, spp=spp)
         yield split.names[i], out, composite_on(split.images[i].to(trainer.device), white)
 
 

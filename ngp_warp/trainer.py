@@ -328,14 +328,17 @@ class Trainer:
     # -- inference -------------------------------------------------------------------------
     @torch.no_grad()
     def render_image(self, c2w, intrinsics, width: int, height: int, distortion=None,
-                     background: float = 1.0, chunk: int = 1 << 14) -> dict:
+                     background: float = 1.0, chunk: int = 1 << 14, spp: int = 1) -> dict:
         """Render one camera ([3, 4] c2w, [4] fx fy cx cy, optional [4] k1 k2 p1 p2 distortion;
-        None skips undistortion) → rgb [H, W, 3], depth/opacity [H, W]."""
+        None skips undistortion) → rgb [H, W, 3], depth/opacity [H, W]. ``spp`` > 1 averages
+        that many renders with jittered sample offsets along each ray."""
+        if not (isinstance(spp, int) and spp >= 1):
+            raise ValueError(f"spp must be a positive integer, got {spp!r}")
         self.field.eval()
         with self._render_weights():
-            return self._render_image(c2w, intrinsics, width, height, distortion, background, chunk)
+            return self._render_image(c2w, intrinsics, width, height, distortion, background, chunk, spp)
 
-    def _render_image(self, c2w, intrinsics, width, height, distortion, background, chunk) -> dict:
+    def _render_image(self, c2w, intrinsics, width, height, distortion, background, chunk, spp) -> dict:
         dev = self.device
         ys, xs = torch.meshgrid(torch.arange(height, device=dev), torch.arange(width, device=dev), indexing="ij")
         px, py = xs.reshape(-1), ys.reshape(-1)
@@ -350,9 +353,9 @@ class Trainer:
             rays_o, rays_d = generate_rays(c2w[lo:hi], intr[lo:hi], None if dist is None else dist[lo:hi],
                                            px[lo:hi], py[lo:hi])
             with self._mlp_precision():
-                out = self.render(rays_o, rays_d, bg, stratified=False)
+                outs = [self.render(rays_o, rays_d, bg, stratified=spp > 1) for _ in range(spp)]
             for k in parts:
-                parts[k].append(out[k].float())
+                parts[k].append(sum(out[k].float() for out in outs) / spp)
         return {
             "rgb": torch.cat(parts["rgb"]).reshape(height, width, 3).clamp(0, 1),
             "depth": torch.cat(parts["depth"]).reshape(height, width),

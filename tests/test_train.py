@@ -82,6 +82,18 @@ def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp
         assert torch.equal(averaged, p.detach())
 
 
+def test_render_image_averages_jittered_renders(tiny_scene):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(60), device="cpu")
+    trainer.train(show_progress=False)
+    split = trainer.scene.test
+    one, four = (trainer.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height, spp=k)
+                 for k in (1, 4))
+    assert not torch.equal(one["rgb"], four["rgb"])  # jittered offsets moved the samples
+    assert psnr(four["rgb"], one["rgb"]) > 25.0  # ... but render the same picture
+    with pytest.raises(ValueError, match="spp"):
+        trainer.render_image(split.c2w[0], split.intrinsics[0], 4, 4, spp=0)
+
+
 def test_settings_override_a_copy_of_the_config(tiny_scene):
     base = TrainConfig()
     cfg = apply_overrides(base, ["loss=huber", "seconds=60", "prune=false", "field.finest_resolution=1024"])
