@@ -195,15 +195,13 @@ class Trainer:
         elif mode == "bf16":
             with torch.autocast("cuda", dtype=torch.bfloat16):
                 yield
-        elif mode == "tf32":
+        else:  # tf32 (the constructor checked the mode)
             saved = torch.backends.cuda.matmul.allow_tf32
             torch.backends.cuda.matmul.allow_tf32 = True
             try:
                 yield
             finally:
                 torch.backends.cuda.matmul.allow_tf32 = saved
-        else:
-            raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {mode!r}")
 
     def render(self, rays_o, rays_d, background, stratified: bool) -> dict:
         """Render rays. In training with ``prune``, only the samples that composite go through
