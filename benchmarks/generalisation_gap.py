@@ -33,9 +33,10 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--checkpoints", default="30,120")
+    ap.add_argument("--downscale", type=int, default=1)
     args = ap.parse_args()
 
-    scene = load_scene(args.scene)
+    scene = load_scene(args.scene, downscale=args.downscale)
     try:
         cfg = apply_overrides(TrainConfig(seconds=300.0), args.set)
     except ValueError as e:
