@@ -117,13 +117,17 @@ def _background(background, n_rays: int, device: torch.device) -> torch.Tensor |
     return bg
 
 
+def _check_sigmas(sigmas, n: int, source: str) -> None:
+    if not isinstance(sigmas, torch.Tensor) or sigmas.shape[0] != n or sigmas.numel() != n:
+        raise ValueError(f"{source} must return sigmas of shape [{n}] or [{n}, 1], "
+                         f"got {getattr(sigmas, 'shape', type(sigmas).__name__)}")
+
+
 def _prune(samples, sigma_fn, grid: OccupancyGrid, early_stop_eps: float, capacity: int | None) -> PrunedSamples:
     with torch.no_grad():
         sigmas = sigma_fn(samples.positions)
     n = samples.n_samples
-    if not isinstance(sigmas, torch.Tensor) or sigmas.shape[0] != n or sigmas.numel() != n:
-        raise ValueError(f"sigma_fn must return sigmas of shape [{n}] or [{n}, 1], "
-                         f"got {getattr(sigmas, 'shape', type(sigmas).__name__)}")
+    _check_sigmas(sigmas, n, "sigma_fn")
     lo, hi = grid.aabb_host[:3], grid.aabb_host[3:]
     centre = tuple(0.5 * (a + b) for a, b in zip(lo, hi))
     return prune_samples(samples, sigmas.reshape(n).float().contiguous(), early_stop_eps, capacity, centre)
@@ -210,9 +214,7 @@ def render_rays(
         weights = torch.zeros(0, device=dev)
     else:
         sigmas, rgbs = field_fn(samples.positions, samples.directions)
-        if not isinstance(sigmas, torch.Tensor) or sigmas.shape[0] != n_samples or sigmas.numel() != n_samples:
-            raise ValueError(f"field_fn must return sigmas of shape [{n_samples}] or [{n_samples}, 1], "
-                             f"got {getattr(sigmas, 'shape', type(sigmas).__name__)}")
+        _check_sigmas(sigmas, n_samples, "field_fn")
         if not isinstance(rgbs, torch.Tensor) or tuple(rgbs.shape) != (n_samples, 3):
             raise ValueError(f"field_fn must return rgbs of shape [{n_samples}, 3], "
                              f"got {getattr(rgbs, 'shape', type(rgbs).__name__)}")
