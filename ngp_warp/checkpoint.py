@@ -28,6 +28,7 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
         "field": trainer.field.state_dict(),
         "grid": trainer.grid.state_dict(),
         "optimizer": trainer.optimizer.state_dict(),
+        "table_optimizer": None if trainer.table_optimizer is None else trainer.table_optimizer.state_dict(),
         "averaged": trainer.averaged,
         "step": trainer.step_count,
         "train_seconds": trainer.train_seconds,
@@ -63,11 +64,14 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
     except DataError as e:
         raise CheckpointError(f"{path}: cannot reload its scene: {e}") from None
     cfg_dict = dict(state["train_config"])
+    cfg_dict.setdefault("lazy_table_adam", False)  # checkpoints from before it used one Adam
     cfg = TrainConfig(**{**cfg_dict, "field": FieldConfig(**cfg_dict["field"])})
     trainer = Trainer(scene, cfg, device=device)
     trainer.field.load_state_dict(state["field"])
     trainer.grid.load_state_dict(state["grid"])
     trainer.optimizer.load_state_dict(state["optimizer"])
+    if trainer.table_optimizer is not None:
+        trainer.table_optimizer.load_state_dict(state["table_optimizer"])
     if trainer.averaged is not None:  # checkpoints from before weight averaging start it from the weights
         saved = state.get("averaged") or [p.detach() for p in trainer.field.parameters()]
         torch._foreach_copy_(trainer.averaged, [t.to(trainer.device) for t in saved])

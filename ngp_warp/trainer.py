@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from ngp_warp.data import Scene, Split, generate_rays
 from ngp_warp.field import FieldConfig, NGPField
 from ngp_warp.occupancy import OccupancyGrid
+from ngp_warp.optim import LazyAdam
 from ngp_warp.progress import Progress
 from ngp_warp.render import render_rays
 
@@ -40,6 +41,7 @@ class TrainConfig:
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
     cuda_graph: bool = True             # CUDA with prune: replay the field's forward/backward as graphs
     weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step
+    lazy_table_adam: bool = False       # Adam skips hash-table entries with zero gradient (tiny-cuda-nn)
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def budget(self) -> tuple[int | None, float | None]:
@@ -135,14 +137,14 @@ class Trainer:
         self.step_size = float((box[3:] - box[:3]).norm()) / cfg.steps_per_diagonal
         self.target_samples = cfg.target_samples or (1 << 17 if self.device.type == "cuda" else 1 << 15)
         self.n_rays = cfg.initial_rays
+        table = {"params": list(self.field.encoding.parameters()), "weight_decay": 0.0}
+        mlp = {"params": self.field.mlp_parameters(), "weight_decay": cfg.weight_decay}
         self.optimizer = torch.optim.Adam(
-            [
-                {"params": self.field.encoding.parameters(), "weight_decay": 0.0},
-                {"params": self.field.mlp_parameters(), "weight_decay": cfg.weight_decay},
-            ],
-            lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
+            [mlp] if cfg.lazy_table_adam else [table, mlp], lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
             fused=self.device.type == "cuda",  # one kernel for the whole update on the GPU
         )
+        self.table_optimizer = (LazyAdam(table["params"], lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+                                if cfg.lazy_table_adam else None)
         self.step_count = 0
         self.train_seconds = 0.0
         self._contributing_host: torch.Tensor | None = None  # pinned copy of the last step's count
@@ -156,6 +158,10 @@ class Trainer:
         )
 
     # -- one optimisation step -------------------------------------------------------------
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        """The MLP's Adam (and the table's, unless the table has its own LazyAdam)."""
+        return [self.optimizer] if self.table_optimizer is None else [self.optimizer, self.table_optimizer]
+
     def _lr_factor(self, progress: float) -> float:
         """Linear warm-up over 100 steps, then ×0.33 at 50 %, 75 % and 90 % of the budget."""
         warm = min(1.0, 0.01 + self.step_count / 100.0)
@@ -232,8 +238,9 @@ class Trainer:
     def step(self, progress: float = 0.0) -> dict:
         """One update on about ``target_samples`` samples; returns loss, PSNR, rays, samples."""
         t0 = time.perf_counter()
-        for group in self.optimizer.param_groups:
-            group["lr"] = self.config.lr * self._lr_factor(progress)
+        for opt in self.optimizers():
+            for group in opt.param_groups:
+                group["lr"] = self.config.lr * self._lr_factor(progress)
         self.field.train()
         self.grid.update(self.step_count, self._density_for_grid)
         rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
@@ -249,10 +256,12 @@ class Trainer:
                 loss = mean_over_rays(F.huber_loss(out["rgb"], target, delta=0.1, reduction="none").mean(-1))
             else:
                 loss = mean_over_rays(squared)
-            self.optimizer.zero_grad(set_to_none=True)
+            for opt in self.optimizers():
+                opt.zero_grad(set_to_none=True)
             if out["n_samples"] > 0:
                 loss.backward()
-                self.optimizer.step()
+                for opt in self.optimizers():
+                    opt.step()
                 self._update_average()
         n_samples = self._samples_in_use(out)
         stats = {"loss": loss.detach(), "mse": mean_over_rays(squared.detach()), "rays": self.n_rays,

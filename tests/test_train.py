@@ -48,8 +48,11 @@ def test_training_is_reproducible(tiny_scene):
     torch.testing.assert_close(runs[0], runs[1], rtol=0, atol=1e-6)
 
 
-def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path):
-    trainer = Trainer(load_scene(tiny_scene), tiny_config(40), device="cpu")
+@pytest.mark.parametrize("lazy_table_adam", [False, True])
+def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam):
+    cfg = tiny_config(40)
+    cfg.lazy_table_adam = lazy_table_adam
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
     trainer.train(show_progress=False)
     ckpt = tmp_path / "checkpoint.pt"
     save_checkpoint(trainer, ckpt, tiny_scene, downscale=1)
@@ -62,6 +65,10 @@ def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path):
     b = loaded.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height)
     torch.testing.assert_close(a["rgb"], b["rgb"], rtol=0, atol=0)
     torch.testing.assert_close(a["depth"], b["depth"], rtol=0, atol=0)
+    for mine, theirs in zip(trainer.optimizers(), loaded.optimizers(), strict=True):
+        for key, state in mine.state_dict()["state"].items():
+            saved = theirs.state_dict()["state"][key]
+            assert all(torch.equal(v, saved[k]) if torch.is_tensor(v) else v == saved[k] for k, v in state.items())
 
     loaded.config.steps = 5
     loaded.train(show_progress=False)

@@ -1,0 +1,83 @@
+"""LazyAdam: torch's Adam where every gradient is non-zero, its float64 twin where some are zero."""
+
+import pytest
+import torch
+
+from ngp_warp._reference.optim import lazy_adam_ref
+from ngp_warp.optim import LazyAdam
+
+
+def sparse_grads(n: int, steps: int, seed: int = 0) -> list[torch.Tensor]:
+    """Random gradients of mixed scale; about half the entries are zero in each step."""
+    g = torch.Generator().manual_seed(seed)
+    return [torch.randn(n, generator=g) * 10 ** torch.empty(n).uniform_(-4, 0, generator=g)
+            * (torch.rand(n, generator=g) < 0.5) for _ in range(steps)]
+
+
+def run(opt_cls, param: torch.Tensor, grads, **kw) -> torch.Tensor:
+    p = torch.nn.Parameter(param.clone())
+    opt = opt_cls([p], **kw)
+    for g in grads:
+        p.grad = g.to(p.device).clone()
+        opt.step()
+    return p.detach()
+
+
+def test_equals_torch_adam_when_every_gradient_is_non_zero():
+    p0 = torch.randn(5000)
+    grads = [torch.randn(5000) + 0.01 for _ in range(6)]
+    assert all((g != 0).all() for g in grads)
+    kw = dict(lr=1e-2, betas=(0.9, 0.99), eps=1e-15)
+    ours, theirs = run(LazyAdam, p0, grads, **kw), run(torch.optim.Adam, p0, grads, **kw)
+    assert (ours - p0).abs().min() > 0  # every entry moved
+    torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-6)
+
+
+def test_skips_zero_gradient_entries_like_its_float64_twin():
+    p0 = torch.randn(20000)
+    grads = sparse_grads(20000, steps=8)
+    ours = run(LazyAdam, p0, grads, lr=1e-2)
+    ref = lazy_adam_ref(p0, grads, lr=1e-2)
+    torch.testing.assert_close(ours.double(), ref, rtol=0, atol=2e-6)
+    never = torch.stack(grads).eq(0).all(0)
+    assert never.any() and torch.equal(ours[never], p0[never])
+    # torch's Adam moves entries after their gradient went back to zero: the two differ there
+    dense = run(torch.optim.Adam, p0, grads, lr=1e-2, betas=(0.9, 0.99), eps=1e-15)
+    assert ((dense - ours).abs() > 1e-4).float().mean() > 0.2
+
+
+def test_state_dict_round_trip_resumes_the_same_trajectory():
+    p0 = torch.randn(3000)
+    grads = sparse_grads(3000, steps=6, seed=1)
+    straight = run(LazyAdam, p0, grads, lr=5e-3)
+    p = torch.nn.Parameter(p0.clone())
+    opt = LazyAdam([p], lr=5e-3)
+    for g in grads[:3]:
+        p.grad = g.clone()
+        opt.step()
+    resumed = LazyAdam([p], lr=5e-3)
+    resumed.load_state_dict(opt.state_dict())
+    for g in grads[3:]:
+        p.grad = g.clone()
+        resumed.step()
+    torch.testing.assert_close(p.detach(), straight, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("bad", [dict(lr=-1.0), dict(betas=(0.9, 1.0)), dict(eps=-1e-8)])
+def test_rejects_bad_settings(bad):
+    with pytest.raises(ValueError):
+        LazyAdam([torch.nn.Parameter(torch.zeros(4))], **bad)
+
+
+def test_rejects_non_float32_parameters():
+    with pytest.raises(ValueError, match="float32"):
+        LazyAdam([torch.nn.Parameter(torch.zeros(4, dtype=torch.float64))])
+
+
+@pytest.mark.cuda
+def test_cuda_matches_cpu():
+    p0 = torch.randn(50000)
+    grads = sparse_grads(50000, steps=5, seed=2)
+    cpu = run(LazyAdam, p0, grads, lr=1e-2)
+    gpu = run(LazyAdam, p0.cuda(), grads, lr=1e-2).cpu()
+    torch.testing.assert_close(gpu, cpu, rtol=0, atol=1e-6)
