@@ -29,6 +29,7 @@ def main() -> None:
     ap.add_argument("--checkpoints", default="15,60")
     ap.add_argument("--test-every", type=int, default=8)
     ap.add_argument("--variant", action="append", required=True, metavar="NAME:KEY=VALUE,...")
+    ap.add_argument("--spp", type=int, default=1, help="also score renders at this many points per pixel")
     ap.add_argument("--json", help="write all rows here")
     args = ap.parse_args()
 
@@ -49,17 +50,19 @@ def main() -> None:
             warm_up(scene, cfg, args.device)
             print(f"warm-up (kernel compilation) {time.perf_counter() - start:.1f} s", flush=True)
         print(f"== {name}", flush=True)
-        results[name] = train_and_evaluate(Trainer(scene, cfg, device=args.device), marks, args.test_every)
+        results[name] = train_and_evaluate(Trainer(scene, cfg, device=args.device), marks, args.test_every, args.spp)
         if args.json:
             Path(args.json).write_text(json.dumps(results, indent=2))
         gc.collect()  # a captured graph holds a reference cycle: free the last variant's memory
         if torch.cuda.is_available():
             torch.cuda.empty_cache()
 
-    print(f"\n| variant | " + " | ".join(f"PSNR @{m:.0f} s" for m in marks) + " | ms/step (last) |")
-    print("| --- |" + " ---: |" * (len(marks) + 1))
+    spp = [f"{args.spp} spp @{m:.0f} s" for m in marks] if args.spp > 1 else []
+    print(f"\n| variant | " + " | ".join([f"PSNR @{m:.0f} s" for m in marks] + spp) + " | ms/step (last) |")
+    print("| --- |" + " ---: |" * (len(marks) + len(spp) + 1))
     for name, rows in results.items():
-        print(f"| {name} | " + " | ".join(f"{r['psnr']:.2f}" for r in rows) + f" | {rows[-1]['ms_per_step']:.2f} |")
+        cells = [f"{r['psnr']:.2f}" for r in rows] + ([f"{r['psnr_spp']:.2f}" for r in rows] if spp else [])
+        print(f"| {name} | " + " | ".join(cells) + f" | {rows[-1]['ms_per_step']:.2f} |")
 
 
 if __name__ == "__main__":

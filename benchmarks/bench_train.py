@@ -74,9 +74,10 @@ def warm_up(scene, cfg: TrainConfig, device: str) -> None:
     gc.collect()  # the captured graph holds a reference cycle: free its memory now
 
 
-def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int) -> list[dict]:
+def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, spp: int = 1) -> list[dict]:
     """Train to each mark (seconds of training wall-clock), stopping the clock to evaluate; the
-    learning-rate schedule runs over ``trainer.config.seconds``."""
+    learning-rate schedule runs over ``trainer.config.seconds``. ``spp`` > 1 also scores renders
+    averaged over that many points per pixel (``psnr_spp``)."""
     schedule_seconds = trainer.config.seconds
     dev = trainer.device
     rows = []
@@ -96,11 +97,15 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int) ->
             "seconds": mark, "train_seconds": trainer.train_seconds, "steps": trainer.step_count,
             "psnr": float(np.mean(scores)), "n_test": len(scores), "ms_per_step": ms,
             "rays_per_step": float(np.mean(rays[-50:])), "samples_per_step": float(np.mean(samples[-50:])),
-            "eval_seconds": time.perf_counter() - start,
         }
+        if spp > 1:
+            row["psnr_spp"] = float(np.mean([psnr(out["rgb"], gt) for _, out, gt in
+                                             iter_test_renders(trainer, every=test_every, spp=spp)]))
+        row["eval_seconds"] = time.perf_counter() - start
         rows.append(row)
         print(f"{mark:6.0f} s  step {row['steps']:6d}  PSNR {row['psnr']:6.2f} dB  {ms:6.2f} ms/step  "
-              f"rays {row['rays_per_step']:8.0f}  samples {row['samples_per_step']:9.0f}", flush=True)
+              f"rays {row['rays_per_step']:8.0f}  samples {row['samples_per_step']:9.0f}"
+              + (f"  PSNR at {spp} spp {row['psnr_spp']:6.2f} dB" if spp > 1 else ""), flush=True)
     return rows
 
 

@@ -11,8 +11,10 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
+from ngp_warp.batch import sample_pixels
 from ngp_warp.data import Scene, Split, generate_rays
 from ngp_warp.field import FieldConfig, NGPField
+from ngp_warp.graphs import GraphedDensity
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.optim import LazyAdam
 from ngp_warp.progress import Progress
@@ -151,6 +153,7 @@ class Trainer:
         self._marched_before = 0
         self._fraction = 1.0  # contributing / marched samples, from the step before
         self._graphed_field = None  # captured on first use (see field_fn)
+        self._graphed_density = None  # likewise (see _sigma_fn)
         # Exponential moving average of the weights, used for rendering when enabled.
         self.averaged = [p.detach().clone() for p in self.field.parameters()] if cfg.weight_average > 0 else None
         self.grid.mark_invisible_cells(
@@ -188,6 +191,15 @@ class Trainer:
             return self._graphed_field(positions, directions)
         return self.field(positions, directions)
 
+    def _sigma_fn(self):
+        """The no-gradient density pass before pruning: in CUDA training with graphs, replayed
+        per bucket of sample counts (see :class:`ngp_warp.graphs.GraphedDensity`)."""
+        if not self._graphs_apply():
+            return self.field.density
+        if self._graphed_density is None:
+            self._graphed_density = GraphedDensity(self.field.density)
+        return self._graphed_density
+
     def _graphs_apply(self) -> bool:
         cfg = self.config
         return cfg.cuda_graph and cfg.prune and self.device.type == "cuda" and cfg.mlp_precision != "bf16"
@@ -220,20 +232,15 @@ class Trainer:
             near=self.scene.near, far=1e4, step_size=self.step_size,
             cone_angle=self.config.cone_angle, early_stop_eps=self.config.early_stop_eps,
             background=background, stratified=stratified,
-            sigma_fn=self.field.density if prune else None, sample_capacity=capacity,
+            sigma_fn=self._sigma_fn() if prune else None, sample_capacity=capacity,
         )
 
     def sample_batch(self, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Random pixels across all training images → (rays_o, rays_d, target rgb, background)."""
-        s = self.train_split
-        dev = self.device
-        img = torch.randint(0, s.images.shape[0], (n,), device=dev)
-        px = torch.randint(0, s.width, (n,), device=dev)
-        py = torch.randint(0, s.height, (n,), device=dev)
-        rays_o, rays_d = s.rays(img, px, py)
-        background = torch.rand(n, 3, device=dev) if s.images.shape[-1] == 4 else torch.ones(n, 3, device=dev)
-        target = composite_on(s.images[img, py, px], background)
-        return rays_o, rays_d, target, background
+        """Random pixels across all training images → (rays_o, rays_d, target rgb, background),
+        drawn in one launch from a seed that mixes the config's seed with the step count."""
+        seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B) & 0x7FFFFFFF
+        b = sample_pixels(self.train_split, n, seed)
+        return b.rays_o, b.rays_d, b.target, b.background
 
     def step(self, progress: float = 0.0) -> dict:
         """One update on about ``target_samples`` samples; returns loss, PSNR, rays, samples."""
@@ -264,7 +271,8 @@ class Trainer:
                     opt.step()
                 self._update_average()
         n_samples = self._samples_in_use(out)
-        stats = {"loss": loss.detach(), "mse": mean_over_rays(squared.detach()), "rays": self.n_rays,
+        mse = loss.detach() if self.config.loss == "l2" else mean_over_rays(squared.detach())
+        stats = {"loss": loss.detach(), "mse": mse, "rays": self.n_rays,
                  "samples": n_samples}
         # Hold the sample count: scale the ray count by target / actual (smoothed, clamped).
         ratio = self.target_samples / max(n_samples, 1)

@@ -1,0 +1,94 @@
+"""Training batches in one launch: random pixels of random training images → rays, targets and
+random backgrounds (the camera model of ``ngp_warp.cameras``)."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+UNDISTORT_ITERATIONS = 10  # as ngp_warp.cameras.UNDISTORT_ITERATIONS
+
+
+# OpenCV radial-tangential distortion inverted by Newton's method from (xd, yd):
+#   distort(x, y) = (x (1 + ρ) + 2 p1 x y + p2 (r² + 2x²),  y (1 + ρ) + 2 p2 x y + p1 (r² + 2y²)),
+#   ρ = k1 r² + k2 r⁴;   (x, y) ← (x, y) − J⁻¹ (distort(x, y) − (xd, yd)).
+@wp.func
+def undistort(xd: float, yd: float, k: wp.vec4):
+    k1 = k[0]
+    k2 = k[1]
+    p1 = k[2]
+    p2 = k[3]
+    x = xd
+    y = yd
+    for _ in range(UNDISTORT_ITERATIONS):
+        r2 = x * x + y * y
+        rho = r2 * (k1 + k2 * r2)
+        drho = 2.0 * (k1 + 2.0 * k2 * r2)
+        ex = x * (1.0 + rho) + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+        ey = y * (1.0 + rho) + 2.0 * p2 * x * y + p1 * (r2 + 2.0 * y * y) - yd
+        jxx = 1.0 + rho + drho * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+        jxy = drho * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+        jyx = drho * x * y + 2.0 * p2 * y + 2.0 * p1 * x
+        jyy = 1.0 + rho + drho * y * y + 2.0 * p2 * x + 6.0 * p1 * y
+        det = jxx * jyy - jxy * jyx
+        if wp.abs(det) < 1.0e-12:
+            det = 1.0e-12
+        x = x - (jyy * ex - jxy * ey) / det
+        y = y - (jxx * ey - jyx * ex) / det
+    return wp.vec2(x, y)
+
+
+# Ray i: image k, pixel (px, py) drawn uniformly (Warp's RNG keyed by seed and i), then
+#   x = (px + 1/2 − cx) / fx,  y = (py + 1/2 − cy) / fy  (undistorted when has_distortion),
+#   d = R (x, −y, −1) / |R (x, −y, −1)|,  o = t  for the camera-to-world [R | t] of image k;
+#   bg ~ U[0, 1)³ with an alpha channel (else white), target = rgb a + bg (1 − a), values / 255.
+@wp.kernel
+def sample_pixels(
+    first: int,
+    seed: int,
+    n_images: int,
+    width: int,
+    height: int,
+    channels: int,
+    has_distortion: int,
+    images: wp.array(dtype=wp.uint8),
+    c2w: wp.array(dtype=float),
+    intrinsics: wp.array(dtype=wp.vec4),
+    distortion: wp.array(dtype=wp.vec4),
+    pixels: wp.array(dtype=wp.vec3i),
+    rays_o: wp.array(dtype=wp.vec3),
+    rays_d: wp.array(dtype=wp.vec3),
+    target: wp.array(dtype=wp.vec3),
+    background: wp.array(dtype=wp.vec3),
+):
+    i = first + wp.tid()
+    rng = wp.rand_init(seed, i)
+    k = wp.randi(rng, 0, n_images)
+    px = wp.randi(rng, 0, width)
+    py = wp.randi(rng, 0, height)
+    pixels[i] = wp.vec3i(k, px, py)
+
+    f = intrinsics[k]
+    x = (float(px) + 0.5 - f[2]) / f[0]
+    y = (float(py) + 0.5 - f[3]) / f[1]
+    if has_distortion != 0:
+        u = undistort(x, y, distortion[k])
+        x = u[0]
+        y = u[1]
+    m = k * 12  # row-major [3, 4]
+    d = wp.vec3(
+        c2w[m + 0] * x - c2w[m + 1] * y - c2w[m + 2],
+        c2w[m + 4] * x - c2w[m + 5] * y - c2w[m + 6],
+        c2w[m + 8] * x - c2w[m + 9] * y - c2w[m + 10],
+    )
+    rays_o[i] = wp.vec3(c2w[m + 3], c2w[m + 7], c2w[m + 11])
+    rays_d[i] = wp.normalize(d)
+
+    p = ((k * height + py) * width + px) * channels
+    rgb = wp.vec3(float(images[p]), float(images[p + 1]), float(images[p + 2])) / 255.0
+    bg = wp.vec3(1.0, 1.0, 1.0)
+    if channels == 4:
+        bg = wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
+        a = float(images[p + 3]) / 255.0
+        rgb = rgb * a + bg * (1.0 - a)
+    background[i] = bg
+    target[i] = rgb

@@ -1,0 +1,58 @@
+"""``sample_pixels``: a training batch of random pixels in one Warp launch."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from ngp_warp import _wp
+from ngp_warp.data import Split
+from ngp_warp.kernels import batch as K
+
+
+class PixelBatch(NamedTuple):
+    """Rays through random pixels of a split and their colours (all float32 on the split's device).
+
+    rays_o, rays_d: [n, 3] camera centres and unit directions (as :func:`ngp_warp.cameras.generate_rays`).
+    target: [n, 3] pixel colours in [0, 1], alpha blended over ``background``.
+    background: [n, 3] uniform random colours for images with alpha, else white.
+    pixels: [n, 3] int32 (image index, px, py) of each ray.
+    """
+
+    rays_o: torch.Tensor
+    rays_d: torch.Tensor
+    target: torch.Tensor
+    background: torch.Tensor
+    pixels: torch.Tensor
+
+
+def sample_pixels(split: Split, n: int, seed: int) -> PixelBatch:
+    """``n`` pixels drawn uniformly over all images of ``split`` (with replacement): rays,
+    targets and backgrounds in one launch. The draw is a function of ``seed`` only (the same on
+    CPU and CUDA): pass a new seed each step.
+
+    .. math::
+        \\mathrm{target} = \\mathrm{rgb}\\,a + \\mathrm{bg}\\,(1 - a), \\qquad \\mathrm{bg} \\sim U[0, 1)^3
+    """
+    if not (isinstance(n, int) and n > 0):
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    if not isinstance(seed, int):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    images = split.images
+    if not images.is_contiguous():
+        raise ValueError("split.images must be contiguous")
+    dev = images.device
+    for name in ("c2w", "intrinsics", "distortion"):
+        if getattr(split, name).device != dev:
+            raise ValueError(f"split.{name} is on {getattr(split, name).device}, its images on {dev}")
+    out = PixelBatch(*(torch.empty(n, 3, dtype=torch.float32, device=dev) for _ in range(4)),
+                     torch.empty(n, 3, dtype=torch.int32, device=dev))
+    _wp.launch(
+        K.sample_pixels, n,
+        [seed & 0x7FFFFFFF, len(split), split.width, split.height, images.shape[-1], int(split.has_distortion),
+         images.view(-1), split.c2w.reshape(-1).contiguous(), split.intrinsics.contiguous(),
+         split.distortion.contiguous(), out.pixels, out.rays_o, out.rays_d, out.target, out.background],
+        _wp.device_of(images),
+    )
+    return out

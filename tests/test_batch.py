@@ -1,0 +1,69 @@
+"""sample_pixels: the fused batch kernel against the torch camera model and alpha blending."""
+
+import math
+
+import pytest
+import torch
+
+from ngp_warp.batch import sample_pixels
+from ngp_warp.data import Split
+from ngp_warp.trainer import composite_on
+
+
+def random_split(n_images=5, width=23, height=17, channels=4, distortion=False, seed=0) -> Split:
+    g = torch.Generator().manual_seed(seed)
+    images = torch.randint(0, 256, (n_images, height, width, channels), generator=g, dtype=torch.uint8)
+    q, _ = torch.linalg.qr(torch.randn(n_images, 3, 3, generator=g))
+    c2w = torch.cat([q, torch.randn(n_images, 3, 1, generator=g) * 3], dim=2)
+    f = torch.rand(n_images, generator=g) * 20 + 15
+    intrinsics = torch.stack([f, f * 1.1, width / 2 + torch.rand(n_images, generator=g),
+                              height / 2 - torch.rand(n_images, generator=g)], dim=1)
+    dist = (torch.rand(n_images, 4, generator=g) - 0.5) * 0.1 if distortion else torch.zeros(n_images, 4)
+    return Split(images, c2w, intrinsics, dist, [f"r_{i}" for i in range(n_images)], width, height)
+
+
+@pytest.mark.parametrize("channels", [3, 4])
+@pytest.mark.parametrize("distortion", [False, True])
+def test_matches_the_torch_camera_model_and_blending(channels, distortion):
+    split = random_split(channels=channels, distortion=distortion)
+    b = sample_pixels(split, 4000, seed=7)
+    k, px, py = b.pixels.long().unbind(-1)
+    rays_o, rays_d = split.rays(k, px, py)
+    torch.testing.assert_close(b.rays_o, rays_o, rtol=0, atol=1e-6)
+    torch.testing.assert_close(b.rays_d, rays_d, rtol=0, atol=2e-5 if distortion else 1e-6)
+    torch.testing.assert_close(b.target, composite_on(split.images[k, py, px], b.background), rtol=0, atol=1e-6)
+    if channels == 4:
+        assert b.background.std() > 0.2 and b.background.min() >= 0 and b.background.max() < 1
+        alpha = split.images[k, py, px, 3]
+        assert (alpha < 255).float().mean() > 0.9  # the blend is exercised
+    else:
+        assert torch.equal(b.background, torch.ones_like(b.background))
+
+
+def test_draws_uniformly_and_depends_only_on_the_seed():
+    split = random_split()
+    b = sample_pixels(split, 20000, seed=1)
+    k, px, py = b.pixels.long().unbind(-1)
+    counts = torch.bincount(k, minlength=len(split)).float()
+    assert (counts - 4000).abs().max() < 5 * math.sqrt(4000)
+    assert px.min() == 0 and px.max() == split.width - 1 and py.min() == 0 and py.max() == split.height - 1
+    again = sample_pixels(split, 20000, seed=1)
+    assert torch.equal(again.pixels, b.pixels) and torch.equal(again.background, b.background)
+    other = sample_pixels(split, 20000, seed=2)
+    assert (other.pixels != b.pixels).any(-1).float().mean() > 0.99
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5])
+def test_rejects_bad_counts(bad):
+    with pytest.raises(ValueError, match="positive integer"):
+        sample_pixels(random_split(), bad, seed=0)
+
+
+@pytest.mark.cuda
+def test_cuda_draws_what_the_cpu_draws():
+    split = random_split(distortion=True)
+    cpu = sample_pixels(split, 5000, seed=3)
+    gpu = sample_pixels(split.to("cuda"), 5000, seed=3)
+    assert torch.equal(gpu.pixels.cpu(), cpu.pixels)
+    for a, b in zip(gpu[:4], cpu[:4]):
+        torch.testing.assert_close(a.cpu(), b, rtol=0, atol=1e-5)
