@@ -12,7 +12,7 @@ def test_bucket_sizes_cover_n_with_at_most_a_sixteenth_to_spare():
         size = bucket_size(n)
         assert size >= n and size % 4096 == 0
         assert size < n + max(4096, n / 16)
-    assert len({bucket_size(n) for n in range(1 << 16, 1 << 17, 97)}) == 16
+    assert len({bucket_size(n) for n in range((1 << 16) + 1, (1 << 17) + 1, 97)}) == 16
 
 
 @pytest.mark.cuda
