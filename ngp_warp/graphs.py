@@ -36,9 +36,11 @@ class GraphedDensity:
         n = positions.shape[0]
         size = bucket_size(n)
         if self.positions is None or self.positions.shape[0] < size:
-            # A larger input buffer moves every captured input: start over.
-            self.positions = torch.zeros(2 * size, 3, device=positions.device)
+            # A larger input buffer moves every captured input: start over, with a new pool
+            # (torch frees a pool with its last graph).
             self.graphs.clear()
+            self.pool = None
+            self.positions = torch.zeros(2 * size, 3, device=positions.device)
         self.positions[:n].copy_(positions)
         entry = self.graphs.get(size)
         if entry is None:
