@@ -17,8 +17,7 @@ from pathlib import Path
 
 import torch
 
-from bench_train import train_and_evaluate, warm_up
-from ngp_warp.data import load_scene
+from bench_train import scene_or_usage_error, train_and_evaluate, warm_up
 from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
 
 
@@ -34,7 +33,7 @@ def main() -> None:
     args = ap.parse_args()
 
     marks = [float(s) for s in args.checkpoints.split(",")]
-    scene = load_scene(args.scene)
+    scene = scene_or_usage_error(ap, args.scene)
     variants = []
     for spec in args.variant:
         name, _, settings = spec.partition(":")

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ngp_warp.data import load_scene
+from ngp_warp.data import DataError, load_scene
 from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.metrics import psnr
 from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
@@ -58,6 +58,14 @@ def _plot(rows: list[dict], path: Path, title: str) -> bool:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     return True
+
+
+def scene_or_usage_error(ap: argparse.ArgumentParser, path: str, downscale: int = 1):
+    """The scene at ``path``, or argparse's usage error with the loader's one-line reason."""
+    try:
+        return load_scene(path, downscale=downscale)
+    except DataError as e:
+        ap.error(str(e))
 
 
 def warm_up(scene, cfg: TrainConfig, device: str) -> None:
@@ -124,7 +132,7 @@ def main() -> None:
     args = ap.parse_args()
 
     marks = [float(s) for s in args.checkpoints.split(",")]
-    scene = load_scene(args.scene, downscale=args.downscale)
+    scene = scene_or_usage_error(ap, args.scene, args.downscale)
     try:
         cfg = apply_overrides(TrainConfig(seconds=marks[-1], target_samples=args.target_samples), args.set)
     except ValueError as e:

@@ -16,8 +16,8 @@ import time
 import numpy as np
 import torch
 
-from bench_train import warm_up
-from ngp_warp.data import Split, load_scene
+from bench_train import scene_or_usage_error, warm_up
+from ngp_warp.data import Split
 from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.metrics import psnr
 from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
@@ -36,7 +36,7 @@ def main() -> None:
     ap.add_argument("--downscale", type=int, default=1)
     args = ap.parse_args()
 
-    scene = load_scene(args.scene, downscale=args.downscale)
+    scene = scene_or_usage_error(ap, args.scene, args.downscale)
     try:
         cfg = apply_overrides(TrainConfig(seconds=300.0), args.set)
     except ValueError as e:

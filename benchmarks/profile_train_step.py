@@ -2,21 +2,51 @@
 
     python benchmarks/profile_train_step.py ../shared/data/lego_half [--device cuda]
 
-Prints the warm per-step wall-clock, the top operators by device time, the device-busy time
-per step and the kernel count per step (CUDA), so host-bound gaps show as wall − busy.
+Prints the warm per-step wall-clock, the host time of each phase of a step (nothing syncs
+inside a phase except the march, which waits for the device), the top operators by device
+time, the device-busy time per step and the kernel count per step (CUDA), so host-bound gaps
+show as wall − busy. ``--set KEY=VALUE`` as in ``bench_train.py``.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from collections import defaultdict
 
 import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from ngp_warp.data import load_scene
-from ngp_warp.trainer import TrainConfig, Trainer
+import ngp_warp.render
+from bench_train import scene_or_usage_error
+from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
+
+
+def time_phases(trainer: Trainer) -> dict[str, float]:
+    """Wrap the step's phases so that their host seconds add up in the returned dict."""
+    spent: dict[str, float] = defaultdict(float)
+
+    def timed(name, fn):
+        def wrapper(*args, **kwargs):
+            start = time.perf_counter()
+            result = fn(*args, **kwargs)
+            spent[name] += time.perf_counter() - start
+            return result
+        return wrapper
+
+    trainer.sample_batch = timed("sample batch", trainer.sample_batch)
+    trainer.grid.update = timed("occupancy grid update", trainer.grid.update)
+    trainer.render = timed("render (all of it)", trainer.render)
+    ngp_warp.render.ray_marching = timed("  march (+ its sync)", ngp_warp.render.ray_marching)
+    ngp_warp.render.prune_samples = timed("  prune", ngp_warp.render.prune_samples)
+    trainer.field_fn = timed("  field forward", trainer.field_fn)
+    trainer._update_average = timed("weight average", trainer._update_average)
+    for opt in trainer.optimizers():
+        opt.step = timed("optimizer", opt.step)
+    make_sigma_fn = trainer._sigma_fn  # returns the density function the render then calls
+    trainer._sigma_fn = lambda: timed("  density pass (no grad)", make_sigma_fn())
+    return spent
 
 
 def main() -> None:
@@ -26,18 +56,28 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=400)
     ap.add_argument("--timed", type=int, default=200)
     ap.add_argument("--profiled", type=int, default=20)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
 
-    trainer = Trainer(load_scene(args.scene), TrainConfig(steps=10**9), device=args.device)
+    try:
+        cfg = apply_overrides(TrainConfig(steps=10**9), args.set)
+    except ValueError as e:
+        ap.error(str(e))
+    trainer = Trainer(scene_or_usage_error(ap, args.scene), cfg, device=args.device)
+    spent = time_phases(trainer)
     sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
     for _ in range(args.warmup):
         trainer.step()
     sync()
+    spent.clear()
     start = time.perf_counter()
     for _ in range(args.timed):
         trainer.step()
     sync()
     print(f"warm step: {(time.perf_counter() - start) / args.timed * 1e3:.2f} ms, rays {trainer.n_rays}")
+    print("| phase | host ms per step |\n| --- | ---: |")
+    for name, seconds in spent.items():
+        print(f"| {name} | {seconds / args.timed * 1e3:.3f} |")
 
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if trainer.device.type == "cuda" else [])
     with profile(activities=activities) as prof:
