@@ -5,7 +5,7 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-UNDISTORT_ITERATIONS = 10  # as ngp_warp.cameras.UNDISTORT_ITERATIONS
+UNDISTORT_ITERATIONS = 10  # Newton steps, here and in ngp_warp.cameras; fixed, so nothing syncs
 
 
 # OpenCV radial-tangential distortion inverted by Newton's method from (xd, yd):

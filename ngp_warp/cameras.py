@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-UNDISTORT_ITERATIONS = 10  # Newton steps; fixed, so undistortion never syncs with the host
+from ngp_warp.kernels.batch import UNDISTORT_ITERATIONS  # one count for the torch and Warp twins
 
 
 def _check(t: torch.Tensor, name: str, shape: tuple, like: torch.Tensor | None = None) -> None:

@@ -64,7 +64,6 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
     except DataError as e:
         raise CheckpointError(f"{path}: cannot reload its scene: {e}") from None
     cfg_dict = dict(state["train_config"])
-    cfg_dict.setdefault("lazy_table_adam", False)  # checkpoints from before it used one Adam
     cfg = TrainConfig(**{**cfg_dict, "field": FieldConfig(**cfg_dict["field"])})
     trainer = Trainer(scene, cfg, device=device)
     trainer.field.load_state_dict(state["field"])

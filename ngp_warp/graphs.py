@@ -30,6 +30,7 @@ class GraphedDensity:
         self.pool = None
         self.positions: torch.Tensor | None = None  # static input, grown as needed
         self.graphs: dict[int, tuple[torch.cuda.CUDAGraph, torch.Tensor]] = {}
+        self.side: torch.cuda.Stream | None = None  # warm-up stream of every capture
 
     @torch.no_grad()
     def __call__(self, positions: torch.Tensor) -> torch.Tensor:
@@ -51,11 +52,12 @@ class GraphedDensity:
 
     def _capture(self, size: int) -> tuple[torch.cuda.CUDAGraph, torch.Tensor]:
         inp = self.positions[:size]
-        side = torch.cuda.Stream(device=inp.device)
-        side.wait_stream(torch.cuda.current_stream(inp.device))
-        with torch.cuda.stream(side):  # warm-up off the capture (as torch's docs ask)
+        if self.side is None:  # one stream, so ngp_warp._wp caches one Warp stream for it
+            self.side = torch.cuda.Stream(device=inp.device)
+        self.side.wait_stream(torch.cuda.current_stream(inp.device))
+        with torch.cuda.stream(self.side):  # warm-up off the capture (as torch's docs ask)
             self.fn(inp)
-        torch.cuda.current_stream(inp.device).wait_stream(side)
+        torch.cuda.current_stream(inp.device).wait_stream(self.side)
         if self.pool is None:
             self.pool = torch.cuda.graph_pool_handle()
         graph = torch.cuda.CUDAGraph()

@@ -245,9 +245,10 @@ class Trainer:
     def step(self, progress: float = 0.0) -> dict:
         """One update on about ``target_samples`` samples; returns loss, PSNR, rays, samples."""
         t0 = time.perf_counter()
+        lr = self.config.lr * self._lr_factor(progress)
         for opt in self.optimizers():
             for group in opt.param_groups:
-                group["lr"] = self.config.lr * self._lr_factor(progress)
+                group["lr"] = lr
         self.field.train()
         self.grid.update(self.step_count, self._density_for_grid)
         rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
