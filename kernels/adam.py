@@ -12,7 +12,8 @@ wp.set_module_options({"enable_backward": False})
 
 
 # For every entry with g ≠ 0 (torch's Adam with its bias correction folded into lr_t, eps_t):
-#   m ← β1 m + (1 − β1) g,   v ← β2 v + (1 − β2) g²,   p ← p − lr_t m / (√v + eps_t)
+#   m ← β1 m + (1 − β1) g,   v ← β2 v + (1 − β2) g²,   p ← p − lr_t m / (√v + eps_t) − decay p
+#   (decay = lr · weight_decay: AdamW's decoupled decay, on touched entries only),
 #   lr_t = lr √(1 − β2^t) / (1 − β1^t),   eps_t = eps √(1 − β2^t)
 @wp.kernel
 def lazy_adam_step(
@@ -25,6 +26,7 @@ def lazy_adam_step(
     beta1: float,
     beta2: float,
     eps_t: float,
+    decay: float,
 ):
     i = first + wp.tid()
     g = grads[i]
@@ -34,4 +36,4 @@ def lazy_adam_step(
     v = beta2 * exp_avg_sq[i] + (1.0 - beta2) * g * g
     exp_avg[i] = m
     exp_avg_sq[i] = v
-    params[i] = params[i] - lr_t * m / (wp.sqrt(v) + eps_t)
+    params[i] = params[i] * (1.0 - decay) - lr_t * m / (wp.sqrt(v) + eps_t)

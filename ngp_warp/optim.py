@@ -28,16 +28,21 @@ class LazyAdam(torch.optim.Optimizer):
     Args:
         params: float32 contiguous tensors (CPU or CUDA) with dense gradients.
         lr, betas, eps: as ``torch.optim.Adam``.
+        weight_decay: decoupled (AdamW) decay, applied to touched entries only:
+            :math:`p_i \\leftarrow p_i (1 - \\mathrm{lr}\\,\\lambda)` before the Adam step.
     """
 
-    def __init__(self, params, lr: float = 1e-2, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-15):
+    def __init__(self, params, lr: float = 1e-2, betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-15,
+                 weight_decay: float = 0.0):
         if not lr >= 0.0:
             raise ValueError(f"lr must be ≥ 0, got {lr}")
         if not all(0.0 <= b < 1.0 for b in betas) or len(betas) != 2:
             raise ValueError(f"betas must be two numbers in [0, 1), got {betas}")
         if not eps >= 0.0:
             raise ValueError(f"eps must be ≥ 0, got {eps}")
-        super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
+        if not weight_decay >= 0.0:
+            raise ValueError(f"weight_decay must be ≥ 0, got {weight_decay}")
+        super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps, "weight_decay": weight_decay})
         for group in self.param_groups:
             for p in group["params"]:
                 if p.dtype != torch.float32 or not p.is_contiguous():
@@ -68,7 +73,8 @@ class LazyAdam(torch.optim.Optimizer):
                 _wp.launch(
                     K.lazy_adam_step, p.numel(),
                     [p.view(-1), grad.view(-1), state["exp_avg"].view(-1), state["exp_avg_sq"].view(-1),
-                     group["lr"] * bc2 / bc1, beta1, beta2, group["eps"] * bc2],
+                     group["lr"] * bc2 / bc1, beta1, beta2, group["eps"] * bc2,
+                     group["lr"] * group["weight_decay"]],
                     _wp.device_of(p),
                 )
         return loss

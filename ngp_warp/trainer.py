@@ -15,6 +15,7 @@ from ngp_warp.batch import sample_pixels
 from ngp_warp.data import Scene, Split, generate_rays
 from ngp_warp.field import FieldConfig, NGPField
 from ngp_warp.graphs import GraphedDensity
+from ngp_warp.losses import distortion_loss
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.optim import LazyAdam
 from ngp_warp.progress import Progress
@@ -44,6 +45,9 @@ class TrainConfig:
     cuda_graph: bool = True             # CUDA with prune: replay the field's forward/backward as graphs
     weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step
     lazy_table_adam: bool = False       # Adam skips hash-table entries with zero gradient (tiny-cuda-nn)
+    table_weight_decay: float = 0.0     # with lazy_table_adam: decoupled decay of touched table entries
+    distortion_weight: float = 0.0      # mip-NeRF 360 distortion loss (world units) per ray, this weight
+    train_background: str = "random"    # behind images with alpha in training: "random" or "white"
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def budget(self) -> tuple[int | None, float | None]:
@@ -123,6 +127,10 @@ class Trainer:
             raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
         if cfg.mlp_precision not in ("fp32", "tf32", "bf16"):
             raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {cfg.mlp_precision!r}")
+        if cfg.train_background not in ("random", "white"):
+            raise ValueError(f"train_background must be random or white, got {cfg.train_background!r}")
+        if cfg.table_weight_decay and not cfg.lazy_table_adam:
+            raise ValueError("table_weight_decay needs lazy_table_adam=true")
         if not 0.0 <= cfg.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {cfg.weight_average}")
         self.device = torch.device(device or default_device())
@@ -145,7 +153,8 @@ class Trainer:
             [mlp] if cfg.lazy_table_adam else [table, mlp], lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
             fused=self.device.type == "cuda",  # one kernel for the whole update on the GPU
         )
-        self.table_optimizer = (LazyAdam(table["params"], lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+        self.table_optimizer = (LazyAdam(table["params"], lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
+                                         weight_decay=cfg.table_weight_decay)
                                 if cfg.lazy_table_adam else None)
         self.step_count = 0
         self.train_seconds = 0.0
@@ -233,13 +242,14 @@ class Trainer:
             cone_angle=self.config.cone_angle, early_stop_eps=self.config.early_stop_eps,
             background=background, stratified=stratified,
             sigma_fn=self._sigma_fn() if prune else None, sample_capacity=capacity,
+            return_samples=self.field.training and self.config.distortion_weight > 0,
         )
 
     def sample_batch(self, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Random pixels across all training images → (rays_o, rays_d, target rgb, background),
         drawn in one launch from a seed that mixes the config's seed with the step count."""
         seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B) & 0x7FFFFFFF
-        b = sample_pixels(self.train_split, n, seed)
+        b = sample_pixels(self.train_split, n, seed, self.config.train_background == "random")
         return b.rays_o, b.rays_d, b.target, b.background
 
     def step(self, progress: float = 0.0) -> dict:
@@ -264,6 +274,9 @@ class Trainer:
                 loss = mean_over_rays(F.huber_loss(out["rgb"], target, delta=0.1, reduction="none").mean(-1))
             else:
                 loss = mean_over_rays(squared)
+            if self.config.distortion_weight > 0 and out["n_samples"] > 0:
+                dist = distortion_loss(out["weights"], out["t_starts"], out["t_ends"], out["ray_indices"], self.n_rays)
+                loss = loss + self.config.distortion_weight * mean_over_rays(dist)
             for opt in self.optimizers():
                 opt.zero_grad(set_to_none=True)
             if out["n_samples"] > 0:
@@ -272,7 +285,8 @@ class Trainer:
                     opt.step()
                 self._update_average()
         n_samples = self._samples_in_use(out)
-        mse = loss.detach() if self.config.loss == "l2" else mean_over_rays(squared.detach())
+        plain_l2 = self.config.loss == "l2" and self.config.distortion_weight == 0
+        mse = loss.detach() if plain_l2 else mean_over_rays(squared.detach())
         stats = {"loss": loss.detach(), "mse": mse, "rays": self.n_rays,
                  "samples": n_samples}
         # Hold the sample count: scale the ray count by target / actual (smoothed, clamped).

@@ -33,11 +33,12 @@ def test_equals_torch_adam_when_every_gradient_is_non_zero():
     torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-6)
 
 
-def test_skips_zero_gradient_entries_like_its_float64_twin():
+@pytest.mark.parametrize("weight_decay", [0.0, 0.5])
+def test_skips_zero_gradient_entries_like_its_float64_twin(weight_decay):
     p0 = torch.randn(20000)
     grads = sparse_grads(20000, steps=8)
-    ours = run(LazyAdam, p0, grads, lr=1e-2)
-    ref = lazy_adam_ref(p0, grads, lr=1e-2)
+    ours = run(LazyAdam, p0, grads, lr=1e-2, weight_decay=weight_decay)
+    ref = lazy_adam_ref(p0, grads, lr=1e-2, weight_decay=weight_decay)
     torch.testing.assert_close(ours.double(), ref, rtol=0, atol=2e-6)
     never = torch.stack(grads).eq(0).all(0)
     assert never.any() and torch.equal(ours[never], p0[never])
@@ -63,7 +64,16 @@ def test_state_dict_round_trip_resumes_the_same_trajectory():
     torch.testing.assert_close(p.detach(), straight, rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("bad", [dict(lr=-1.0), dict(betas=(0.9, 1.0)), dict(eps=-1e-8)])
+def test_weight_decay_shrinks_touched_entries_only():
+    p0 = torch.randn(4000)
+    grads = sparse_grads(4000, steps=3, seed=3)
+    plain, decayed = run(LazyAdam, p0, grads, lr=1e-2), run(LazyAdam, p0, grads, lr=1e-2, weight_decay=2.0)
+    touched = torch.stack(grads).ne(0).any(0)
+    assert (decayed[touched].abs() < plain[touched].abs()).float().mean() > 0.9
+    torch.testing.assert_close(decayed[~touched], p0[~touched], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("bad", [dict(lr=-1.0), dict(betas=(0.9, 1.0)), dict(eps=-1e-8), dict(weight_decay=-1.0)])
 def test_rejects_bad_settings(bad):
     with pytest.raises(ValueError):
         LazyAdam([torch.nn.Parameter(torch.zeros(4))], **bad)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 
 
-def lazy_adam_ref(param, grads, lr: float, betas=(0.9, 0.99), eps: float = 1e-15) -> torch.Tensor:
+def lazy_adam_ref(param, grads, lr: float, betas=(0.9, 0.99), eps: float = 1e-15,
+                  weight_decay: float = 0.0) -> torch.Tensor:
     """``param`` after one LazyAdam step per gradient in ``grads`` (all float64)."""
     p = param.double().clone()
     m, v = torch.zeros_like(p), torch.zeros_like(p)
@@ -16,5 +17,5 @@ def lazy_adam_ref(param, grads, lr: float, betas=(0.9, 0.99), eps: float = 1e-15
         m = torch.where(hit, b1 * m + (1 - b1) * g, m)
         v = torch.where(hit, b2 * v + (1 - b2) * g * g, v)
         step = lr / (1 - b1**t) * m / ((v / (1 - b2**t)).sqrt() + eps)
-        p = torch.where(hit, p - step, p)
+        p = torch.where(hit, p * (1 - lr * weight_decay) - step, p)
     return p
