@@ -40,7 +40,7 @@ def undistort(xd: float, yd: float, k: wp.vec4):
 # Ray i: image k, pixel (px, py) drawn uniformly (Warp's RNG keyed by seed and i), then
 #   x = (px + 1/2 − cx) / fx,  y = (py + 1/2 − cy) / fy  (undistorted when has_distortion),
 #   d = R (x, −y, −1) / |R (x, −y, −1)|,  o = t  for the camera-to-world [R | t] of image k;
-#   bg ~ U[0, 1)³ with an alpha channel and random_background (else white), target = rgb a + bg (1 − a), values / 255.
+#   bg ~ U[0, 1)³ with an alpha channel (else white), target = rgb a + bg (1 − a), values / 255.
 @wp.kernel
 def sample_pixels(
     first: int,
@@ -50,7 +50,6 @@ def sample_pixels(
     height: int,
     channels: int,
     has_distortion: int,
-    random_background: int,
     images: wp.array(dtype=wp.uint8),
     c2w: wp.array(dtype=float),
     intrinsics: wp.array(dtype=wp.vec4),
@@ -88,8 +87,7 @@ def sample_pixels(
     rgb = wp.vec3(float(images[p]), float(images[p + 1]), float(images[p + 2])) / 255.0
     bg = wp.vec3(1.0, 1.0, 1.0)
     if channels == 4:
-        if random_background != 0:
-            bg = wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
+        bg = wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
         a = float(images[p + 3]) / 255.0
         rgb = rgb * a + bg * (1.0 - a)
     background[i] = bg

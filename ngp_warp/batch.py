@@ -16,7 +16,7 @@ class PixelBatch(NamedTuple):
 
     rays_o, rays_d: [n, 3] camera centres and unit directions (as :func:`ngp_warp.cameras.generate_rays`).
     target: [n, 3] pixel colours in [0, 1], alpha blended over ``background``.
-    background: [n, 3] uniform random colours for images with alpha (unless turned off), else white.
+    background: [n, 3] uniform random colours for images with alpha, else white.
     pixels: [n, 3] int32 (image index, px, py) of each ray.
     """
 
@@ -27,10 +27,10 @@ class PixelBatch(NamedTuple):
     pixels: torch.Tensor
 
 
-def sample_pixels(split: Split, n: int, seed: int, random_background: bool = True) -> PixelBatch:
+def sample_pixels(split: Split, n: int, seed: int) -> PixelBatch:
     """``n`` pixels drawn uniformly over all images of ``split`` (with replacement): rays,
     targets and backgrounds in one launch. The draw is a function of ``seed`` only (the same on
-    CPU and CUDA): pass a new seed each step. ``random_background=False`` blends on white.
+    CPU and CUDA): pass a new seed each step.
 
     .. math::
         \\mathrm{target} = \\mathrm{rgb}\\,a + \\mathrm{bg}\\,(1 - a), \\qquad \\mathrm{bg} \\sim U[0, 1)^3
@@ -51,7 +51,6 @@ def sample_pixels(split: Split, n: int, seed: int, random_background: bool = Tru
     _wp.launch(
         K.sample_pixels, n,
         [seed & 0x7FFFFFFF, len(split), split.width, split.height, images.shape[-1], int(split.has_distortion),
-         int(random_background),
          images.view(-1), split.c2w.reshape(-1).contiguous(), split.intrinsics.contiguous(),
          split.distortion.contiguous(), out.pixels, out.rays_o, out.rays_d, out.target, out.background],
         _wp.device_of(images),

@@ -116,9 +116,10 @@ def cmd_train(args) -> None:
 
 
 def demo_config(device: str, steps: int | None, seconds: float | None, seed: int):
-    """Training settings for the 100×100 demo scene. On the CPU a smaller field, a coarser
-    occupancy grid and a longer step keep 2 cores busy on useful samples (measured: 31 dB
-    after 120 s on 2 cores, see benchmarks/RESULTS.md)."""
+    """Training settings for the 100×100 demo scene. On the CPU a smaller table, a coarser
+    occupancy grid and a longer step keep 2 cores busy on useful samples; the finest hash-grid
+    level follows the images (104 cells here; measured on 2 cores after 150 s: 33.8 dB, against
+    32.7 dB with 512 cells, see benchmarks/RESULTS.md)."""
     from ngp_warp.field import FieldConfig
     from ngp_warp.trainer import TrainConfig
 
@@ -127,8 +128,8 @@ def demo_config(device: str, steps: int | None, seconds: float | None, seed: int
     if device == "cpu":
         return TrainConfig(steps=steps, seconds=seconds, seed=seed, target_samples=1 << 13,
                            grid_resolution=64, steps_per_diagonal=512,
-                           field=FieldConfig(log2_hashmap_size=16, finest_resolution=512.0))
-    return TrainConfig(steps=steps, seconds=seconds, seed=seed, field=FieldConfig(finest_resolution=512.0))
+                           field=FieldConfig(log2_hashmap_size=16))
+    return TrainConfig(steps=steps, seconds=seconds, seed=seed)
 
 
 def cmd_demo(args) -> None:
@@ -206,7 +207,7 @@ def _parser() -> argparse.ArgumentParser:
         budget.add_argument("--seconds", type=_positive(float), help="training wall-clock budget in seconds")
         sp.add_argument("--downscale", type=_positive(int), default=1, help="shrink images by this integer factor")
         sp.add_argument("--seed", type=int, default=0)
-        sp.add_argument("--target-samples", type=_positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
+        sp.add_argument("--target-samples", type=_positive(int), help="samples per batch (default 2^17 CUDA, 2^15 CPU)")
         sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
         sp.add_argument("--frames", type=_positive(int), default=60, help="orbit video frames")
 

@@ -23,15 +23,20 @@ from ngp_warp.encoding import HashGridEncoding
 from ngp_warp.kernels import sh as sh_kernels
 
 
+INSTANT_NGP_FINEST_RESOLUTION = 2048.0  # instant-ngp's finest level over its unit cube
+
+
 @dataclass
 class FieldConfig:
-    """Sizes of the NGP field (defaults: instant-ngp's NeRF configuration)."""
+    """Sizes of the NGP field (defaults: instant-ngp's NeRF configuration, except the finest
+    resolution, which by default follows the training images' resolution)."""
 
     n_levels: int = 16
     n_features_per_level: int = 2
     log2_hashmap_size: int = 19
     base_resolution: int = 16
-    finest_resolution: float = 2048.0
+    finest_resolution: float | None = None  # None: the Trainer matches the training pixels
+                                            # (pixel_matched_resolution); NGPField alone: 2048
     hidden: int = 64
     geo_features: int = 16
 
@@ -100,7 +105,7 @@ class NGPField(nn.Module):
             n_features_per_level=cfg.n_features_per_level,
             log2_hashmap_size=cfg.log2_hashmap_size,
             base_resolution=cfg.base_resolution,
-            desired_resolution=cfg.finest_resolution,
+            desired_resolution=cfg.finest_resolution or INSTANT_NGP_FINEST_RESOLUTION,
         )
         self.density_mlp = _mlp([self.encoding.n_output_dims, cfg.hidden, cfg.geo_features])
         self.color_mlp = _mlp([cfg.geo_features + 16, cfg.hidden, cfg.hidden, 3])

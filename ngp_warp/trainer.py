@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from ngp_warp.batch import sample_pixels
 from ngp_warp.data import Scene, Split, generate_rays
-from ngp_warp.field import FieldConfig, NGPField
+from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig, NGPField
 from ngp_warp.graphs import GraphedDensity
 from ngp_warp.losses import distortion_loss
 from ngp_warp.occupancy import OccupancyGrid
@@ -47,7 +47,6 @@ class TrainConfig:
     lazy_table_adam: bool = False       # Adam skips hash-table entries with zero gradient (tiny-cuda-nn)
     table_weight_decay: float = 0.0     # with lazy_table_adam: decoupled decay of touched table entries
     distortion_weight: float = 0.0      # mip-NeRF 360 distortion loss (world units) per ray, this weight
-    train_background: str = "random"    # behind images with alpha in training: "random" or "white"
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def budget(self) -> tuple[int | None, float | None]:
@@ -58,7 +57,8 @@ class TrainConfig:
 
 def apply_overrides(config: TrainConfig, settings: list[str]) -> TrainConfig:
     """A copy of ``config`` with ``key=value`` settings applied (``field.key`` for the field's
-    sizes); values take the type of the current value. Raises ValueError on unknown keys or
+    sizes); values take the type of the current value (``none`` for settings that
+    default to None, e.g. ``field.finest_resolution``). Raises ValueError on unknown keys or
     values that do not parse."""
     config = dataclasses.replace(config, field=dataclasses.replace(config.field))
     for item in settings:
@@ -68,7 +68,9 @@ def apply_overrides(config: TrainConfig, settings: list[str]) -> TrainConfig:
         if not sep or name not in names:
             raise ValueError(f"unknown setting {item!r}; expected key=value with key one of "
                              f"{', '.join(sorted(names | {'field.' + n for n in _field_names()}))}")
-        setattr(target, name, _parse_value(getattr(target, name), text, key))
+        optional = {f.name for f in dataclasses.fields(target) if f.default is None}
+        value = None if name in optional and text.lower() == "none" else _parse_value(getattr(target, name), text, key)
+        setattr(target, name, value)
     return config
 
 
@@ -89,6 +91,27 @@ def _parse_value(current, text: str, key: str):
             pass
     names = {int: "an integer", float: "a number", str: "a string"}
     raise ValueError(f"{key} takes {names.get(kinds[-1], kinds[-1].__name__)}, got {text!r}")
+
+
+def pixel_matched_resolution(scene: Scene) -> float:
+    """The finest hash-grid resolution whose cells are about one training pixel wide at the
+    field box's centre: the box's longest side over the median pixel footprint (camera distance
+    to the centre over the focal length fx), rounded, clamped to [64, 2048 per unit cube]
+    (instant-ngp's 2048 × aabb_scale).
+
+    On lego at 400×400 this gives 414 cells. Measured there after 60 s (RESULTS.md): finest
+    256 / 362 / 512 / 724 / 1024 / 2048 give 34.97 / 35.31 / 35.25 / 35.03 / 34.74 / 34.43 dB:
+    finer levels than the pixels resolve only fit the training views' noise.
+    """
+    split = scene.train
+    box = scene.aabb.double()
+    centre = 0.5 * (box[:3] + box[3:])
+    distance = (split.c2w[:, :, 3].double() - centre).norm(dim=-1)
+    footprint = float((distance / split.intrinsics[:, 0].double()).median())
+    side = float((box[3:] - box[:3]).max())
+    unit = float((scene.occupancy_aabb[3:] - scene.occupancy_aabb[:3]).max())
+    ceiling = INSTANT_NGP_FINEST_RESOLUTION * side / unit
+    return float(min(max(round(side / max(footprint, 1e-12)), 64), ceiling))
 
 
 def default_device() -> str:
@@ -127,12 +150,13 @@ class Trainer:
             raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
         if cfg.mlp_precision not in ("fp32", "tf32", "bf16"):
             raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {cfg.mlp_precision!r}")
-        if cfg.train_background not in ("random", "white"):
-            raise ValueError(f"train_background must be random or white, got {cfg.train_background!r}")
         if cfg.table_weight_decay and not cfg.lazy_table_adam:
             raise ValueError("table_weight_decay needs lazy_table_adam=true")
         if not 0.0 <= cfg.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {cfg.weight_average}")
+        if cfg.field.finest_resolution is None:  # resolved here, so checkpoints store the number
+            cfg = self.config = dataclasses.replace(cfg, field=dataclasses.replace(
+                cfg.field, finest_resolution=pixel_matched_resolution(scene)))
         self.device = torch.device(device or default_device())
         torch.manual_seed(cfg.seed)
         self.scene = scene
@@ -249,7 +273,7 @@ class Trainer:
         """Random pixels across all training images → (rays_o, rays_d, target rgb, background),
         drawn in one launch from a seed that mixes the config's seed with the step count."""
         seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B) & 0x7FFFFFFF
-        b = sample_pixels(self.train_split, n, seed, self.config.train_background == "random")
+        b = sample_pixels(self.train_split, n, seed)
         return b.rays_o, b.rays_d, b.target, b.background
 
     def step(self, progress: float = 0.0) -> dict:

@@ -1,5 +1,7 @@
 """End-to-end training on a tiny generated scene (CPU), checkpoints and resume."""
 
+import math
+
 import pytest
 import torch
 
@@ -8,8 +10,8 @@ from ngp_warp.data import load_scene
 from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.field import FieldConfig
 from ngp_warp.metrics import psnr
-from ngp_warp.scene import write_demo_scene
-from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
+from ngp_warp.scene import CAMERA_ANGLE_X, CAMERA_RADIUS, write_demo_scene
+from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides, pixel_matched_resolution
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +107,8 @@ def test_settings_override_a_copy_of_the_config(tiny_scene):
     base = TrainConfig()
     cfg = apply_overrides(base, ["loss=huber", "seconds=60", "prune=false", "field.finest_resolution=1024"])
     assert (cfg.loss, cfg.seconds, cfg.prune, cfg.field.finest_resolution) == ("huber", 60, False, 1024.0)
-    assert (base.loss, base.seconds, base.prune, base.field.finest_resolution) == ("l2", None, True, 2048.0)
+    assert (base.loss, base.seconds, base.prune, base.field.finest_resolution) == ("l2", None, True, None)
+    assert apply_overrides(cfg, ["field.finest_resolution=none"]).field.finest_resolution is None
     for bad, message in [("nope=1", "unknown setting"), ("loss", "unknown setting"),
                          ("field.hidden=x", "an integer"), ("prune=maybe", "true or false")]:
         with pytest.raises(ValueError, match=message):
@@ -150,3 +153,36 @@ def test_cuda_graph_field_matches_the_eager_field(tiny_scene):
     assert eager[-1].abs().max() > 0
     for a, b in zip(eager, graphed):
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6)
+
+
+def test_finest_resolution_follows_the_training_pixels(tiny_scene):
+    # Demo cameras look at the box centre from CAMERA_RADIUS; a pixel there is radius / fx wide.
+    scene = load_scene(tiny_scene)
+    side = float((scene.aabb[3:] - scene.aabb[:3]).max())
+    fx = 0.5 * scene.train.width / math.tan(0.5 * CAMERA_ANGLE_X)
+    assert pixel_matched_resolution(scene) == max(64, round(side * fx / CAMERA_RADIUS))
+    scene.train.intrinsics = scene.train.intrinsics * 20  # a 20× sharper camera: 20× finer cells
+    assert pixel_matched_resolution(scene) == round(side * 20 * fx / CAMERA_RADIUS)
+    scene.train.intrinsics = scene.train.intrinsics * 1000  # capped at instant-ngp's 2048
+    assert pixel_matched_resolution(scene) == 2048.0
+
+
+def test_trainer_resolves_an_unset_finest_resolution_and_checkpoints_it(tiny_scene, tmp_path):
+    cfg = tiny_config(2)
+    cfg.field.finest_resolution = None
+    scene = load_scene(tiny_scene)
+    trainer = Trainer(scene, cfg, device="cpu")
+    assert cfg.field.finest_resolution is None  # the caller's config is left alone
+    assert trainer.config.field.finest_resolution == pixel_matched_resolution(scene)
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
+    assert loaded.config.field.finest_resolution == trainer.config.field.finest_resolution
+
+
+def test_distortion_weight_adds_the_distortion_loss(tiny_scene):
+    cfg = tiny_config(3)
+    cfg.distortion_weight = 0.5
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+    trainer.train(show_progress=False)
+    stats = trainer.step()
+    assert float(stats["loss"]) > float(stats["mse"]) > 0

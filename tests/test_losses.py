@@ -1,0 +1,108 @@
+"""Distortion loss: values and gradients against its float64 twin, padding rows, bad input."""
+
+import pytest
+import torch
+
+from ngp_warp import composite
+from ngp_warp._reference.losses import distortion_loss_ref
+from ngp_warp.losses import distortion_loss
+
+
+def packed_samples(counts, n_padding=0, seed=0):
+    """Random weights on sorted intervals at camera-like distances (t ≈ 4), rays of the given
+    sample counts (0 allowed), then ``n_padding`` rows of ray index len(counts) with zero weight."""
+    g = torch.Generator().manual_seed(seed)
+    n_rays = len(counts)
+    starts, ends, rays = [], [], []
+    for r, c in enumerate(counts):
+        t0 = 3.5 + torch.rand(1, generator=g)
+        widths = 0.005 + 0.02 * torch.rand(c, generator=g)
+        gaps = 0.03 * torch.rand(c, generator=g) * (torch.rand(c, generator=g) < 0.3)  # skipped space
+        s = t0 + torch.cumsum(widths + gaps, 0) - widths
+        starts.append(s)
+        ends.append(s + widths)
+        rays.append(torch.full((c,), r))
+    rays.append(torch.full((n_padding,), n_rays))
+    ts = torch.cat(starts + [torch.zeros(n_padding)]).float()
+    te = torch.cat(ends + [torch.zeros(n_padding)]).float()
+    w = torch.rand(ts.shape[0], generator=g) / 8
+    if n_padding:
+        w[-n_padding:] = 0.0
+    return w.float(), ts, te, torch.cat(rays).long(), n_rays
+
+
+COUNTS = [5, 0, 1, 17, 40, 3, 0, 64]
+
+
+def test_values_match_the_float64_twin():
+    w, ts, te, rays, n = packed_samples(COUNTS)
+    ours = distortion_loss(w, ts, te, rays, n)
+    ref = distortion_loss_ref(w, ts, te, rays, n)
+    assert ref.abs().max() > 1e-3 and (ref[[1, 6]] == 0).all()
+    torch.testing.assert_close(ours.double(), ref, rtol=1e-4, atol=1e-7)
+
+
+def test_gradients_match_the_float64_twin():
+    w, ts, te, rays, n = packed_samples(COUNTS, seed=1)
+    upstream = torch.randn(n)
+    w1 = w.clone().requires_grad_(True)
+    (distortion_loss(w1, ts, te, rays, n) * upstream).sum().backward()
+    w2 = w.double().clone().requires_grad_(True)
+    (distortion_loss_ref(w2, ts, te, rays, n) * upstream.double()).sum().backward()
+    assert w2.grad.abs().max() > 1e-3
+    torch.testing.assert_close(w1.grad.double(), w2.grad, rtol=1e-4, atol=1e-6)
+
+
+def test_padding_rows_are_ignored_and_get_no_gradient():
+    w, ts, te, rays, n = packed_samples(COUNTS, n_padding=7, seed=2)
+    w[-7:] = 0.3  # even with weight, a row past the last ray belongs to no ray
+    w.requires_grad_(True)
+    loss = distortion_loss(w, ts, te, rays, n)
+    torch.testing.assert_close(loss.double(), distortion_loss_ref(w, ts, te, rays, n), rtol=1e-4, atol=1e-7)
+    loss.sum().backward()
+    assert (w.grad[-7:] == 0).all() and w.grad[:-7].abs().max() > 0
+
+
+def test_a_crisp_ray_costs_less_than_a_spread_one():
+    # Equal opacity: all of it in one short interval versus spread over eight.
+    ts = torch.tensor([4.0, 4.01, 4.02, 4.03, 4.04, 4.05, 4.06, 4.07] * 2)
+    te = ts + 0.01
+    w = torch.tensor([0.0, 0.0, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0] + [0.1] * 8)
+    loss = distortion_loss(w, ts, te, torch.tensor([0] * 8 + [1] * 8), 2)
+    assert loss[0] < loss[1] / 5
+
+
+def test_trains_through_composite_to_the_densities():
+    w, ts, te, rays, n = packed_samples([6, 9], seed=3)
+    sigmas = torch.full_like(ts, 20.0, requires_grad=True)
+    rgbs = torch.rand(ts.shape[0], 3)
+    *_, weights = composite(sigmas, rgbs, ts, te, rays, n, return_weights=True)
+    distortion_loss(weights, ts, te, rays, n).sum().backward()
+    assert torch.isfinite(sigmas.grad).all() and sigmas.grad.abs().max() > 0
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(weights=torch.zeros(3, dtype=torch.float64)), "weights must be"),
+    (dict(t_ends=torch.zeros(2)), "t_ends must be"),
+    (dict(ray_indices=torch.zeros(3, dtype=torch.int32)), "ray_indices must be"),
+    (dict(n_rays=-1), "n_rays"),
+])
+def test_rejects_bad_input(bad, match):
+    args = dict(weights=torch.zeros(3), t_starts=torch.zeros(3), t_ends=torch.ones(3),
+                ray_indices=torch.zeros(3, dtype=torch.int64), n_rays=1)
+    with pytest.raises(ValueError, match=match):
+        distortion_loss(**{**args, **bad})
+
+
+@pytest.mark.cuda
+def test_cuda_matches_cpu():
+    w, ts, te, rays, n = packed_samples(COUNTS * 50, n_padding=5, seed=4)
+    cpu_w = w.clone().requires_grad_(True)
+    gpu_w = w.cuda().requires_grad_(True)
+    cpu = distortion_loss(cpu_w, ts, te, rays, n)
+    gpu = distortion_loss(gpu_w, ts.cuda(), te.cuda(), rays.cuda(), n)
+    torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-5, atol=1e-7)
+    upstream = torch.randn(n)
+    (cpu * upstream).sum().backward()
+    (gpu * upstream.cuda()).sum().backward()
+    torch.testing.assert_close(gpu_w.grad.cpu(), cpu_w.grad, rtol=1e-5, atol=1e-6)
