@@ -45,8 +45,7 @@ class TrainConfig:
     cuda_graph: bool = True             # CUDA with prune: replay the field's forward/backward as graphs
     weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step
     lazy_table_adam: bool = False       # Adam skips hash-table entries with zero gradient (tiny-cuda-nn)
-    table_weight_decay: float = 0.0     # with lazy_table_adam: decoupled decay of touched table entries
-    distortion_weight: float = 0.0      # mip-NeRF 360 distortion loss (world units) per ray, this weight
+    distortion_weight: float = 0.0      # weight of the mean distortion loss per ray (t in world units)
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def budget(self) -> tuple[int | None, float | None]:
@@ -150,8 +149,6 @@ class Trainer:
             raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
         if cfg.mlp_precision not in ("fp32", "tf32", "bf16"):
             raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {cfg.mlp_precision!r}")
-        if cfg.table_weight_decay and not cfg.lazy_table_adam:
-            raise ValueError("table_weight_decay needs lazy_table_adam=true")
         if not 0.0 <= cfg.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {cfg.weight_average}")
         if cfg.field.finest_resolution is None:  # resolved here, so checkpoints store the number
@@ -177,8 +174,7 @@ class Trainer:
             [mlp] if cfg.lazy_table_adam else [table, mlp], lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
             fused=self.device.type == "cuda",  # one kernel for the whole update on the GPU
         )
-        self.table_optimizer = (LazyAdam(table["params"], lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
-                                         weight_decay=cfg.table_weight_decay)
+        self.table_optimizer = (LazyAdam(table["params"], lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
                                 if cfg.lazy_table_adam else None)
         self.step_count = 0
         self.train_seconds = 0.0
