@@ -98,9 +98,10 @@ def pixel_matched_resolution(scene: Scene) -> float:
     to the centre over the focal length fx), rounded, clamped to [64, 2048 per unit cube]
     (instant-ngp's 2048 × aabb_scale).
 
-    On lego at 400×400 this gives 414 cells. Measured there after 60 s (RESULTS.md): finest
+    On lego at 400×400 this gives 413 cells. Measured there after 60 s (RESULTS.md): finest
     256 / 362 / 512 / 724 / 1024 / 2048 give 34.97 / 35.31 / 35.25 / 35.03 / 34.74 / 34.43 dB:
-    finer levels than the pixels resolve only fit the training views' noise.
+    levels finer than the pixels let the field fit each training ray on its own, which the test
+    views do not share.
     """
     split = scene.train
     box = scene.aabb.double()
@@ -149,6 +150,8 @@ class Trainer:
             raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
         if cfg.mlp_precision not in ("fp32", "tf32", "bf16"):
             raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {cfg.mlp_precision!r}")
+        if not cfg.distortion_weight >= 0.0:
+            raise ValueError(f"distortion_weight must be ≥ 0, got {cfg.distortion_weight}")
         if not 0.0 <= cfg.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {cfg.weight_average}")
         if cfg.field.finest_resolution is None:  # resolved here, so checkpoints store the number
