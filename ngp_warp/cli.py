@@ -82,7 +82,8 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
         trainer = Trainer(scene, config or _train_config(args), device=device)
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
-          f"{scene.train.width}x{scene.train.height}, device {trainer.device}", file=sys.stderr)
+          f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "
+          f"level {trainer.config.field.finest_resolution:g} cells", file=sys.stderr)
     if scene.test_is_heldout:
         print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
               file=sys.stderr)
