@@ -33,6 +33,7 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
         "step": trainer.step_count,
         "train_seconds": trainer.train_seconds,
         "n_rays": trainer.n_rays,
+        "sample_fraction": trainer._fraction,  # contributing / marched samples, steers the ray count
         "rng": torch.get_rng_state(),
     }
     with atomic_file(path) as tmp:
@@ -64,7 +65,10 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
     except DataError as e:
         raise CheckpointError(f"{path}: cannot reload its scene: {e}") from None
     cfg_dict = dict(state["train_config"])
-    cfg = TrainConfig(**{**cfg_dict, "field": FieldConfig(**cfg_dict["field"])})
+    try:
+        cfg = TrainConfig(**{**cfg_dict, "field": FieldConfig(**cfg_dict["field"])})
+    except TypeError as e:  # a setting this version does not have
+        raise CheckpointError(f"{path}: written by another ngp-warp version ({e})") from None
     trainer = Trainer(scene, cfg, device=device)
     trainer.field.load_state_dict(state["field"])
     trainer.grid.load_state_dict(state["grid"])
@@ -77,5 +81,6 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
     trainer.step_count = state["step"]
     trainer.train_seconds = state["train_seconds"]
     trainer.n_rays = state["n_rays"]
+    trainer._fraction = state.get("sample_fraction", 1.0)
     torch.set_rng_state(state["rng"])
     return trainer, record

@@ -129,6 +129,24 @@ def test_checkpoint_errors_are_one_line(tmp_path):
         read_checkpoint(tmp_path / "other.pt")
 
 
+def test_checkpoint_keeps_the_contributing_fraction_that_steers_the_ray_count(tiny_scene, tmp_path):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
+    trainer._fraction = 0.37  # as after steps where 37 % of the marched samples composite
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
+    assert loaded._fraction == 0.37
+
+
+def test_checkpoint_from_another_version_is_a_one_line_error(tiny_scene, tmp_path):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    state = torch.load(tmp_path / "c.pt", weights_only=False)
+    state["train_config"]["a_future_setting"] = 1
+    torch.save(state, tmp_path / "c.pt")
+    with pytest.raises(CheckpointError, match="another ngp-warp version.*a_future_setting"):
+        load_trainer(tmp_path / "c.pt", device="cpu")
+
+
 @pytest.mark.cuda
 def test_cuda_graph_field_matches_the_eager_field(tiny_scene):
     trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cuda")
