@@ -19,7 +19,7 @@ def distortion_forward(
     weights: wp.array(dtype=float),
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
-    offsets: wp.array(dtype=wp.int64),
+    offsets: wp.array(dtype=wp.int32),
     loss: wp.array(dtype=float),
 ):
     r = first + wp.tid()
@@ -49,7 +49,7 @@ def distortion_backward(
     weights: wp.array(dtype=float),
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
-    offsets: wp.array(dtype=wp.int64),
+    offsets: wp.array(dtype=wp.int32),
     grad_loss: wp.array(dtype=float),
     grad_weights: wp.array(dtype=float),
 ):

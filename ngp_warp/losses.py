@@ -32,6 +32,14 @@ class _Distortion(torch.autograd.Function):
         return grad, None, None, None
 
 
+def distortion_loss_packed(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                           ray_offsets: torch.Tensor) -> torch.Tensor:
+    """:func:`distortion_loss` on validated, contiguous float32 samples given by ``ray_offsets``
+    [n_rays + 1] int32 (as ``render_rays(..., return_samples=True)`` returns them), skipping the
+    search for each ray's first sample. Returns [n_rays] float32."""
+    return _Distortion.apply(weights, t_starts, t_ends, ray_offsets)
+
+
 def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
                     ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
     """Mip-NeRF 360's distortion loss of every ray: small when a ray's weight sits in one
@@ -71,5 +79,5 @@ def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch
         raise ValueError(f"n_rays must be a non-negative int, got {n_rays!r}")
     _wp.device_of(weights)
     # offsets[r] = first sample of ray r (binary search: rows past the last ray are left out)
-    offsets = torch.searchsorted(ray_indices, torch.arange(n_rays + 1, device=weights.device))
-    return _Distortion.apply(weights.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets)
+    offsets = torch.searchsorted(ray_indices, torch.arange(n_rays + 1, device=weights.device), out_int32=True)
+    return distortion_loss_packed(weights.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets)

@@ -186,7 +186,8 @@ def render_rays(
         ``n_marched`` (int), ``n_contributing`` ([1] int32 on the device) and ``ray_mask``
         ([N] bool, False for dropped rays, which render as background); with
         ``return_samples`` also ``weights`` [S], ``ray_indices`` [S] int64, ``t_starts`` [S],
-        ``t_ends`` [S].
+        ``t_ends`` [S] and ``ray_offsets`` [N + 1] int32 (samples of ray r are
+        ``ray_offsets[r] : ray_offsets[r+1]``; padding rows lie past ``ray_offsets[N]``).
     """
     if early_stop_eps < 0:
         raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
@@ -227,5 +228,5 @@ def render_rays(
     out = {"rgb": rgb, "opacity": opacity, "depth": depth, "n_samples": n_samples, **extra}
     if return_samples:
         out.update(weights=weights, ray_indices=samples.ray_indices, t_starts=samples.t_starts,
-                   t_ends=samples.t_ends)
+                   t_ends=samples.t_ends, ray_offsets=samples.ray_offsets)
     return out

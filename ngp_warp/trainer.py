@@ -15,7 +15,7 @@ from ngp_warp.batch import sample_pixels
 from ngp_warp.data import Scene, Split, generate_rays
 from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig, NGPField
 from ngp_warp.graphs import GraphedDensity
-from ngp_warp.losses import distortion_loss
+from ngp_warp.losses import distortion_loss_packed
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.optim import LazyAdam
 from ngp_warp.progress import Progress
@@ -298,7 +298,7 @@ class Trainer:
             else:
                 loss = mean_over_rays(squared)
             if self.config.distortion_weight > 0 and out["n_samples"] > 0:
-                dist = distortion_loss(out["weights"], out["t_starts"], out["t_ends"], out["ray_indices"], self.n_rays)
+                dist = distortion_loss_packed(out["weights"], out["t_starts"], out["t_ends"], out["ray_offsets"])
                 loss = loss + self.config.distortion_weight * mean_over_rays(dist)
             for opt in self.optimizers():
                 opt.zero_grad(set_to_none=True)

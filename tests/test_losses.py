@@ -5,7 +5,8 @@ import torch
 
 from ngp_warp import composite
 from ngp_warp._reference.losses import distortion_loss_ref
-from ngp_warp.losses import distortion_loss
+from ngp_warp._reference.render import ray_offsets_ref
+from ngp_warp.losses import distortion_loss, distortion_loss_packed
 
 
 def packed_samples(counts, n_padding=0, seed=0):
@@ -61,6 +62,19 @@ def test_padding_rows_are_ignored_and_get_no_gradient():
     torch.testing.assert_close(loss.double(), distortion_loss_ref(w, ts, te, rays, n), rtol=1e-4, atol=1e-7)
     loss.sum().backward()
     assert (w.grad[-7:] == 0).all() and w.grad[:-7].abs().max() > 0
+
+
+def test_packed_offsets_give_the_same_loss_and_gradients():
+    w, ts, te, rays, n = packed_samples(COUNTS, n_padding=3, seed=5)
+    upstream = torch.randn(n)
+    by_index, by_offset = w.clone().requires_grad_(True), w.clone().requires_grad_(True)
+    a = distortion_loss(by_index, ts, te, rays, n)
+    b = distortion_loss_packed(by_offset, ts, te, ray_offsets_ref(rays, n).int())
+    assert a.abs().max() > 0
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    (a * upstream).sum().backward()
+    (b * upstream).sum().backward()
+    torch.testing.assert_close(by_index.grad, by_offset.grad, rtol=0, atol=0)
 
 
 def test_a_crisp_ray_costs_less_than_a_spread_one():

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from ngp_warp import OccupancyGrid, ray_marching, render_rays
-from ngp_warp._reference.render import composite_ref, sphere_render_ref
+from ngp_warp._reference.render import composite_ref, ray_offsets_ref, sphere_render_ref
 
 AABB = torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
 CENTER = torch.tensor([0.1, -0.05, 0.0])
@@ -85,6 +85,8 @@ def test_background_and_returned_samples():
     plain = render_rays(rays_o, rays_d, grid, sphere_field, step_size=0.01, return_samples=True)
     per_ray = torch.zeros(32).index_add_(0, plain["ray_indices"], plain["weights"])
     torch.testing.assert_close(per_ray, plain["opacity"], rtol=1e-5, atol=1e-6)
+    assert plain["ray_offsets"].dtype == torch.int32 and plain["ray_indices"].unique().numel() > 1
+    assert torch.equal(plain["ray_offsets"].long(), ray_offsets_ref(plain["ray_indices"], 32))
     for bg in (0.25, torch.tensor([0.1, 0.2, 0.3]), torch.rand(32, 3)):
         out = render_rays(rays_o, rays_d, grid, sphere_field, step_size=0.01, background=bg)
         expected = plain["rgb"] + torch.as_tensor(bg).expand(32, 3) * (1 - plain["opacity"])[:, None]
