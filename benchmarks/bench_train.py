@@ -145,22 +145,18 @@ def main() -> None:
     except ValueError as e:
         ap.error(str(e))
     warm_up(scene, cfg, args.device)
-    trainer = Trainer(scene, cfg, device=args.device)
-    dev = trainer.device
-    if dev.type == "cuda":
-        torch.cuda.reset_peak_memory_stats(dev)
-    if args.schedule_per_checkpoint:
-        rows = []
-        for mark in marks:
-            if rows:  # a fresh run: drop the last one's graphs and memory first
-                del trainer
-                gc.collect()
-                trainer = Trainer(scene, dataclasses.replace(cfg, seconds=mark), device=args.device)
-            else:
-                trainer.config.seconds = mark
-            rows += train_and_evaluate(trainer, [mark], args.test_every)
-    else:
-        rows = train_and_evaluate(trainer, marks, args.test_every)
+    # One run evaluated at every mark, or a fresh run per mark with its schedule over that mark.
+    runs = ([([mark], dataclasses.replace(cfg, seconds=mark)) for mark in marks] if args.schedule_per_checkpoint
+            else [(marks, cfg)])
+    rows = []
+    for run_marks, run_cfg in runs:
+        trainer = None
+        gc.collect()  # drop the last run's graphs and memory first
+        trainer = Trainer(scene, run_cfg, device=args.device)
+        dev = trainer.device
+        if not rows and dev.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(dev)
+        rows += train_and_evaluate(trainer, run_marks, args.test_every)
     peak = torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU"
     out = Path(args.out)
