@@ -39,13 +39,22 @@ def _writable_dir(path: Path) -> Path:
     return path
 
 
+def _with_settings(cfg, args):
+    """``cfg`` with ``--target-samples`` and the ``--set KEY=VALUE`` settings applied."""
+    from ngp_warp.trainer import apply_overrides
+
+    if args.target_samples:
+        cfg.target_samples = args.target_samples
+    try:
+        return apply_overrides(cfg, args.set)
+    except ValueError as e:
+        raise UserError(f"--set: {e}") from None
+
+
 def _train_config(args):
     from ngp_warp.trainer import TrainConfig
 
-    cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
-    if args.target_samples:
-        cfg.target_samples = args.target_samples
-    return cfg
+    return _with_settings(TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed), args)
 
 
 def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
@@ -79,11 +88,12 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
         scene_path, downscale = Path(record["path"]), record["downscale"]  # what the run trained on
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
-        trainer = Trainer(scene, config or _train_config(args), device=device)
+        trainer = Trainer(scene, config, device=device)
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
           f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "
-          f"level {trainer.config.field.finest_resolution:g} cells", file=sys.stderr)
+          f"level {trainer.config.field.finest_resolution:g} cells, table 2^{trainer.config.field.log2_hashmap_size} "
+          f"per level, distortion loss weight {trainer.config.distortion_weight:g}", file=sys.stderr)
     if scene.test_is_heldout:
         print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
               file=sys.stderr)
@@ -112,7 +122,10 @@ def _print_metrics(metrics: dict, out: Path) -> None:
 
 def cmd_train(args) -> None:
     scene = Path(args.scene)
-    metrics = _train_and_report(scene, Path(args.out), args)
+    if args.resume and args.set:
+        raise UserError("--set with --resume: a resumed run keeps the settings in its checkpoint")
+    config = None if args.resume else _train_config(args)  # bad settings fail before any loading
+    metrics = _train_and_report(scene, Path(args.out), args, config=config)
     _print_metrics(metrics, Path(args.out))
 
 
@@ -141,9 +154,7 @@ def cmd_demo(args) -> None:
     if not (scene_dir / "transforms_train.json").exists():
         print(f"generating the demo scene in {scene_dir}", file=sys.stderr)
         write_demo_scene(scene_dir, seed=args.seed)
-    config = demo_config(_device(args.device), args.steps, args.seconds, args.seed)
-    if args.target_samples:
-        config.target_samples = args.target_samples
+    config = _with_settings(demo_config(_device(args.device), args.steps, args.seconds, args.seed), args)
     metrics = _train_and_report(scene_dir, out, args, config=config)
     _print_metrics(metrics, out)
 
@@ -209,6 +220,9 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--downscale", type=_positive(int), default=1, help="shrink images by this integer factor")
         sp.add_argument("--seed", type=int, default=0)
         sp.add_argument("--target-samples", type=_positive(int), help="samples per batch (default 2^17 CUDA, 2^15 CPU)")
+        sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
+                             "(repeatable; see ngp_warp.trainer.TrainConfig)")
         sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
         sp.add_argument("--frames", type=_positive(int), default=60, help="orbit video frames")
 

@@ -24,16 +24,19 @@ from ngp_warp.kernels import sh as sh_kernels
 
 
 INSTANT_NGP_FINEST_RESOLUTION = 2048.0  # instant-ngp's finest level over its unit cube
+INSTANT_NGP_LOG2_HASHMAP_SIZE = 19      # instant-ngp's table size per level, 2^19 entries
 
 
 @dataclass
 class FieldConfig:
     """Sizes of the NGP field (defaults: instant-ngp's NeRF configuration, except the finest
-    resolution, which by default follows the training images' resolution)."""
+    resolution, which by default follows the training images' resolution, and the table size,
+    which the Trainer picks by device)."""
 
     n_levels: int = 16
     n_features_per_level: int = 2
-    log2_hashmap_size: int = 19
+    log2_hashmap_size: int | None = None    # None: the Trainer picks 21 on CUDA, 19 on the CPU;
+                                            # NGPField alone: 19
     base_resolution: int = 16
     finest_resolution: float | None = None  # None: the Trainer matches the training pixels
                                             # (pixel_matched_resolution); NGPField alone: 2048
@@ -103,7 +106,7 @@ class NGPField(nn.Module):
             n_input_dims=3,
             n_levels=cfg.n_levels,
             n_features_per_level=cfg.n_features_per_level,
-            log2_hashmap_size=cfg.log2_hashmap_size,
+            log2_hashmap_size=cfg.log2_hashmap_size or INSTANT_NGP_LOG2_HASHMAP_SIZE,
             base_resolution=cfg.base_resolution,
             desired_resolution=cfg.finest_resolution or INSTANT_NGP_FINEST_RESOLUTION,
         )

@@ -27,7 +27,9 @@ def one_line_error(capsys, prefix="ngp-warp: error: "):
 
 def test_train_eval_render(scene, tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["train", str(scene), "--out", str(out), "--steps", "20", "--frames", "3", *FAST]) == 0
+    assert main(["train", str(scene), "--out", str(out), "--steps", "20", "--frames", "3",
+                 "--set", "distortion_weight=0.01", *FAST]) == 0
+    assert "distortion loss weight 0.01" in capsys.readouterr().err
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr", "ssim", "train_seconds", "steps", "per_image"):
         assert key in metrics
@@ -105,6 +107,17 @@ def test_bad_numbers_and_video_names_are_refused(scene, tmp_path, capsys):
     assert "positive int" in capsys.readouterr().err
     assert main(["render", str(tmp_path), "--video", "orbit.avi", "--device", "cpu"]) == 2
     assert ".mp4 or .gif" in one_line_error(capsys)
+
+
+def test_bad_settings_are_one_line_and_create_nothing(scene, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["train", str(scene), "--out", str(out), "--set", "field.log2_hashmap_size=big"]) == 2
+    assert "log2_hashmap_size takes an integer" in one_line_error(capsys)
+    assert main(["train", str(scene), "--out", str(out), "--set", "no_such_setting=1"]) == 2
+    assert "unknown setting" in one_line_error(capsys)
+    assert main(["train", str(scene), "--out", str(out), "--resume", "--set", "lr=1e-3"]) == 2
+    assert "keeps the settings in its checkpoint" in one_line_error(capsys)
+    assert not out.exists()
 
 
 def test_eval_of_a_missing_folder_creates_nothing(tmp_path, capsys):

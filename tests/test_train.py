@@ -11,7 +11,7 @@ from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.field import FieldConfig
 from ngp_warp.metrics import psnr
 from ngp_warp.scene import CAMERA_ANGLE_X, CAMERA_RADIUS, write_demo_scene
-from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides, pixel_matched_resolution
+from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides, device_defaults, pixel_matched_resolution
 
 
 @pytest.fixture(scope="module")
@@ -195,6 +195,27 @@ def test_trainer_resolves_an_unset_finest_resolution_and_checkpoints_it(tiny_sce
     save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
     loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
     assert loaded.config.field.finest_resolution == trainer.config.field.finest_resolution
+
+
+@pytest.mark.parametrize("device,table,distortion", [("cuda", 21, 1e-3), ("cpu", 19, 0.0)])
+def test_unset_table_size_and_distortion_weight_follow_the_device(device, table, distortion):
+    cfg = device_defaults(TrainConfig(), device)
+    assert (cfg.field.log2_hashmap_size, cfg.distortion_weight) == (table, distortion)
+    assert (TrainConfig().field.log2_hashmap_size, TrainConfig().distortion_weight) == (None, None)
+    chosen = TrainConfig(distortion_weight=0.0, field=FieldConfig(log2_hashmap_size=17))
+    kept = device_defaults(chosen, device)
+    assert (kept.field.log2_hashmap_size, kept.distortion_weight) == (17, 0.0)
+
+
+def test_trainer_checkpoints_the_resolved_device_defaults(tiny_scene, tmp_path):
+    cfg = tiny_config(1)
+    cfg.field.log2_hashmap_size, cfg.distortion_weight = None, None
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+    assert (trainer.config.field.log2_hashmap_size, trainer.config.distortion_weight) == (19, 0.0)
+    assert trainer.field.encoding.log2_hashmap_size == 19
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
+    assert (loaded.config.field.log2_hashmap_size, loaded.config.distortion_weight) == (19, 0.0)
 
 
 def test_distortion_weight_adds_the_distortion_loss(tiny_scene):
