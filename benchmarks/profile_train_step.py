@@ -5,7 +5,8 @@
 Prints the warm per-step wall-clock, the host time of each phase of a step (nothing syncs
 inside a phase except the march, which waits for the device), the top operators by device
 time, the device-busy time per step and the kernel count per step (CUDA), so host-bound gaps
-show as wall − busy. ``--set KEY=VALUE`` as in ``bench_train.py``.
+show as wall − busy, and on CUDA the top operators by host time. ``--set KEY=VALUE`` as in
+``bench_train.py``.
 """
 
 from __future__ import annotations
@@ -41,7 +42,6 @@ def time_phases(trainer: Trainer) -> dict[str, float]:
     ngp_warp.render.ray_marching = timed("  march (+ its sync)", ngp_warp.render.ray_marching)
     ngp_warp.render.prune_samples = timed("  prune", ngp_warp.render.prune_samples)
     trainer.field_fn = timed("  field forward", trainer.field_fn)
-    trainer._update_average = timed("weight average", trainer._update_average)
     for opt in trainer.optimizers():
         opt.step = timed("optimizer", opt.step)
     make_sigma_fn = trainer._sigma_fn  # returns the density function the render then calls
@@ -87,6 +87,8 @@ def main() -> None:
     events = prof.key_averages()
     sort = "cuda_time_total" if trainer.device.type == "cuda" else "cpu_time_total"
     print(events.table(sort_by=sort, row_limit=22, max_name_column_width=60))
+    if trainer.device.type == "cuda":  # where the host time goes (a host-bound step)
+        print(events.table(sort_by="self_cpu_time_total", row_limit=30, max_name_column_width=60))
     kernels = [e for e in events if e.device_type == DeviceType.CUDA]
     if kernels:
         busy = sum(e.self_device_time_total for e in kernels) / args.profiled

@@ -29,7 +29,7 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
         "grid": trainer.grid.state_dict(),
         "optimizer": trainer.optimizer.state_dict(),
         "table_optimizer": None if trainer.table_optimizer is None else trainer.table_optimizer.state_dict(),
-        "averaged": trainer.averaged,
+        "averaged": trainer.averaged_weights(),
         "step": trainer.step_count,
         "train_seconds": trainer.train_seconds,
         "n_rays": trainer.n_rays,

@@ -25,6 +25,17 @@ class LazyAdam(torch.optim.Optimizer):
         p_i \\leftarrow p_i - \\frac{\\mathrm{lr}}{1-\\beta_1^t}
             \\frac{m_i}{\\sqrt{v_i / (1-\\beta_2^t)} + \\epsilon}
 
+    With :meth:`keep_average`, the same pass keeps an exponential moving average of a tensor,
+    equal to updating every entry's average every step,
+
+    .. math::
+
+        a_i \\leftarrow a_i + (1 - d_t)\\,(p_i - a_i),
+
+    while touching only the entries with a gradient (an untouched entry's weight stands still, so
+    its average catches up in closed form when next touched, or at :meth:`flush_averages`). The
+    decay :math:`d_t` of a step is the group's ``average_decay``, set before each step.
+
     Args:
         params: float32 contiguous tensors (CPU or CUDA) with dense gradients.
         lr, betas, eps: as ``torch.optim.Adam``.
@@ -42,11 +53,47 @@ class LazyAdam(torch.optim.Optimizer):
             raise ValueError(f"eps must be ≥ 0, got {eps}")
         if not weight_decay >= 0.0:
             raise ValueError(f"weight_decay must be ≥ 0, got {weight_decay}")
-        super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps, "weight_decay": weight_decay})
+        super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps, "weight_decay": weight_decay,
+                                  "average_decay": None})
+        self._averages: dict[torch.Tensor, torch.Tensor] = {}
         for group in self.param_groups:
             for p in group["params"]:
                 if p.dtype != torch.float32 or not p.is_contiguous():
                     raise ValueError(f"LazyAdam takes contiguous float32 tensors, got {p.dtype} {tuple(p.shape)}")
+
+    def keep_average(self, param: torch.Tensor, average: torch.Tensor) -> None:
+        """Keep ``average`` (a tensor like ``param``, the caller's; it holds the average's
+        start) as the moving average of ``param`` from the next step on. Call
+        :meth:`flush_averages` before reading it. The averages are not in :meth:`state_dict`:
+        the caller saves them (flushed) and restores them after :meth:`load_state_dict`."""
+        if not any(param is p for group in self.param_groups for p in group["params"]):
+            raise ValueError("keep_average: not a parameter of this optimizer")
+        if average.shape != param.shape or average.dtype != torch.float32 or not average.is_contiguous() \
+                or average.device != param.device:
+            raise ValueError(f"keep_average: the average must be a contiguous float32 tensor like the "
+                             f"parameter {tuple(param.shape)} on {param.device}")
+        self._averages[param] = average
+        state = self.state[param]
+        state.setdefault("log_decay", 0.0)  # L: the sum of log d over the steps so far
+        if "synced" not in state:
+            state["synced"] = torch.zeros_like(param)  # L at each entry's last catch-up
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        super().load_state_dict(state_dict)
+        for p in self._averages:  # state saved before the average was kept
+            state = self.state[p]
+            if "synced" not in state:
+                state["log_decay"] = 0.0
+                state["synced"] = torch.zeros_like(p)
+
+    @torch.no_grad()
+    def flush_averages(self) -> None:
+        """Bring every kept average up to date (one pass over each)."""
+        for p, average in self._averages.items():
+            state = self.state[p]
+            _wp.launch(K.flush_average, p.numel(),
+                       [p.view(-1), average.view(-1), state["synced"].view(-1), state["log_decay"]],
+                       _wp.device_of(p))
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -63,18 +110,26 @@ class LazyAdam(torch.optim.Optimizer):
                 if grad.is_sparse or grad.dtype != torch.float32 or not grad.is_contiguous():
                     raise ValueError("LazyAdam needs dense contiguous float32 gradients")
                 state = self.state[p]
-                if not state:
+                if "step" not in state:
                     state["step"] = 0
                     state["exp_avg"] = torch.zeros_like(p)
                     state["exp_avg_sq"] = torch.zeros_like(p)
                 state["step"] += 1
                 bc1 = 1.0 - beta1 ** state["step"]
                 bc2 = math.sqrt(1.0 - beta2 ** state["step"])
-                _wp.launch(
-                    K.lazy_adam_step, p.numel(),
-                    [p.view(-1), grad.view(-1), state["exp_avg"].view(-1), state["exp_avg_sq"].view(-1),
-                     group["lr"] * bc2 / bc1, beta1, beta2, group["eps"] * bc2,
-                     group["lr"] * group["weight_decay"]],
-                    _wp.device_of(p),
-                )
+                adam = [p.view(-1), grad.view(-1), state["exp_avg"].view(-1), state["exp_avg_sq"].view(-1)]
+                hyper = [group["lr"] * bc2 / bc1, beta1, beta2, group["eps"] * bc2, group["lr"] * group["weight_decay"]]
+                average = self._averages.get(p)
+                if average is None:
+                    _wp.launch(K.lazy_adam_step, p.numel(), adam + hyper, _wp.device_of(p))
+                    continue
+                decay = group["average_decay"]
+                if decay is None or not 0.0 < decay < 1.0:
+                    raise ValueError(f"LazyAdam keeps an average: set the group's average_decay in (0, 1), got {decay}")
+                before = state["log_decay"]
+                state["log_decay"] = before + math.log(decay)
+                _wp.launch(K.lazy_adam_average_step, p.numel(),
+                           adam + [average.view(-1), state["synced"].view(-1)] + hyper
+                           + [before, state["log_decay"], decay],
+                           _wp.device_of(p))
         return loss

@@ -44,7 +44,8 @@ class TrainConfig:
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
     cuda_graph: bool = True             # CUDA with prune: replay the field's forward/backward as graphs
     weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step
-    lazy_table_adam: bool = False       # Adam skips hash-table entries with zero gradient (tiny-cuda-nn)
+    lazy_table_adam: bool = True        # Adam skips hash-table entries with zero gradient (tiny-cuda-nn),
+                                        # and keeps their weight average in the same pass
     distortion_weight: float | None = None  # weight of the mean distortion loss per ray (t in world
                                         # units); None: 1e-3 on CUDA, 0 on the CPU (see device_defaults)
     field: FieldConfig = field(default_factory=FieldConfig)
@@ -208,8 +209,16 @@ class Trainer:
         self._fraction = 1.0  # contributing / marched samples, from the step before
         self._graphed_field = None  # captured on first use (see field_fn)
         self._graphed_density = None  # likewise (see _sigma_fn)
-        # Exponential moving average of the weights, used for rendering when enabled.
+        # Exponential moving average of the weights, used for rendering when enabled. The lazy
+        # table optimizer keeps the table's; the rest are lerped after each step.
         self.averaged = [p.detach().clone() for p in self.field.parameters()] if cfg.weight_average > 0 else None
+        self._lerped: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
+        for p, average in zip(self.field.parameters(), self.averaged or []):
+            if self.table_optimizer is not None and any(p is q for q in table["params"]):
+                self.table_optimizer.keep_average(p, average)
+            else:
+                self._lerped[0].append(average)
+                self._lerped[1].append(p)
         self.grid.mark_invisible_cells(
             self.train_split.c2w, self.train_split.intrinsics, self.train_split.width, self.train_split.height
         )
@@ -304,6 +313,9 @@ class Trainer:
         for opt in self.optimizers():
             for group in opt.param_groups:
                 group["lr"] = lr
+        decay = self._average_decay()
+        if self.table_optimizer is not None:
+            self.table_optimizer.param_groups[0]["average_decay"] = decay
         self.field.train()
         self.grid.update(self.step_count, self._density_for_grid)
         rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
@@ -328,7 +340,8 @@ class Trainer:
                 loss.backward()
                 for opt in self.optimizers():
                     opt.step()
-                self._update_average()
+                if self._lerped[0]:
+                    torch._foreach_lerp_(self._lerped[0], self._lerped[1], 1.0 - decay)
         n_samples = self._samples_in_use(out)
         plain_l2 = self.config.loss == "l2" and self.config.distortion_weight == 0
         mse = loss.detach() if plain_l2 else mean_over_rays(squared.detach())
@@ -360,22 +373,30 @@ class Trainer:
         self._marched_before = marched
         return int(marched * self._fraction)
 
-    def _update_average(self) -> None:
+    def _average_decay(self) -> float | None:
+        """This step's weight-average decay (None without averaging): a short memory early on,
+        so the random initial weights wash out quickly."""
         if self.averaged is None:
-            return
-        # Short memory early on so the random initial weights wash out quickly.
-        decay = min(self.config.weight_average, (1 + self.step_count) / (10 + self.step_count))
-        torch._foreach_lerp_(self.averaged, [p.detach() for p in self.field.parameters()], 1.0 - decay)
+            return None
+        return min(self.config.weight_average, (1 + self.step_count) / (10 + self.step_count))
+
+    def averaged_weights(self) -> list[torch.Tensor] | None:
+        """The weight average, one tensor per field parameter in order, up to date (None
+        without averaging)."""
+        if self.averaged is not None and self.table_optimizer is not None:
+            self.table_optimizer.flush_averages()
+        return self.averaged
 
     @contextlib.contextmanager
     def _render_weights(self):
         """The averaged weights in the field while rendering (when averaging is on)."""
-        if self.averaged is None:
+        averaged = self.averaged_weights()
+        if averaged is None:
             yield
             return
         params = [p.data for p in self.field.parameters()]
         live = [p.clone() for p in params]
-        torch._foreach_copy_(params, self.averaged)
+        torch._foreach_copy_(params, averaged)
         try:
             yield
         finally:

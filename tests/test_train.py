@@ -77,6 +77,28 @@ def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam)
     assert loaded.step_count == 45
 
 
+def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scene):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(25), device="cpu")
+    opt, table = trainer.table_optimizer, trainer.field.encoding.params
+    start = table.detach().double().clone()
+    trajectory = []  # (decay, table after the step) per step
+    step = opt.step
+
+    def recording_step(*args, **kwargs):
+        result = step(*args, **kwargs)
+        trajectory.append((opt.param_groups[0]["average_decay"], table.detach().double().clone()))
+        return result
+
+    opt.step = recording_step
+    trainer.train(show_progress=False)
+    dense = start
+    for decay, weights in trajectory:
+        dense = torch.lerp(dense, weights, 1 - decay)
+    assert len(trajectory) == 25 and (dense - table.double()).abs().max() > 1e-4
+    index = [i for i, p in enumerate(trainer.field.parameters()) if p is table][0]
+    torch.testing.assert_close(trainer.averaged_weights()[index].double(), dense, rtol=0, atol=1e-6)
+
+
 def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp_path):
     trainer = Trainer(load_scene(tiny_scene), tiny_config(10), device="cpu")
     trainer.train(show_progress=False)
