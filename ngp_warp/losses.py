@@ -1,4 +1,5 @@
-"""Regularisers on packed samples (as ``render_rays(..., return_samples=True)`` returns them)."""
+"""Losses: regularisers on packed samples (as ``render_rays(..., return_samples=True)`` returns
+them) and the photometric loss of rendered rays."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import torch
 
 from ngp_warp import _wp
 from ngp_warp.kernels import distortion as K
+from ngp_warp.kernels import loss as L
 
 _BLOCK = 32  # one thread per ray, as in ngp_warp.render
 
@@ -81,3 +83,89 @@ def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch
     # offsets[r] = first sample of ray r (binary search: rows past the last ray are left out)
     offsets = torch.searchsorted(ray_indices, torch.arange(n_rays + 1, device=weights.device), out_int32=True)
     return distortion_loss_packed(weights.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets)
+
+
+class _RayLoss(torch.autograd.Function):
+    """The Warp forward and hand-written backward of :func:`ray_loss`."""
+
+    @staticmethod
+    def forward(ctx, rgb, opacity, target, background, ray_mask, extra, extra_weight: float, delta: float):
+        n_rays, device = rgb.shape[0], _wp.device_of(rgb)
+        mask = None if ray_mask is None else ray_mask.view(torch.uint8)
+        sums = torch.zeros(6, dtype=torch.float32, device=rgb.device)  # 4 sums, loss, mse
+        items = -(-n_rays // L.RAYS_PER_THREAD)
+        _wp.launch(L.ray_loss_sums, items,
+                   [n_rays, rgb, opacity, background, target, int(mask is not None), mask,
+                    int(extra is not None), extra, delta, sums],
+                   device, align=items)  # one CPU thread: the sums are atomics
+        _wp.launch(L.ray_loss_finish, 1, [extra_weight, sums], device)
+        ctx.save_for_backward(rgb, opacity, target, background, mask, sums)
+        ctx.extra_weight, ctx.delta, ctx.has_extra = extra_weight, delta, extra is not None
+        loss, mse = sums[4], sums[5]
+        ctx.mark_non_differentiable(mse)
+        return loss, mse
+
+    @staticmethod
+    def backward(ctx, grad_loss, _grad_mse):
+        rgb, opacity, target, background, mask, sums = ctx.saved_tensors
+        grad_rgb, grad_opacity = torch.empty_like(rgb), torch.empty_like(opacity)
+        grad_extra = torch.empty_like(opacity) if ctx.has_extra else None
+        _wp.launch(L.ray_loss_backward, rgb.shape[0],
+                   [rgb, opacity, background, target, int(mask is not None), mask, int(ctx.has_extra),
+                    ctx.delta, ctx.extra_weight, sums, grad_loss.float().reshape(1), grad_rgb, grad_opacity,
+                    grad_extra],
+                   _wp.device_of(rgb))
+        return grad_rgb, grad_opacity, None, None, None, grad_extra, None, None
+
+
+def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, background: torch.Tensor,
+             ray_mask: torch.Tensor | None = None, extra: torch.Tensor | None = None, extra_weight: float = 0.0,
+             huber_delta: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The photometric loss of rays rendered without a background (``render_rays(...,
+    background=None)``), blended over ``background`` here, with an optional per-ray term,
+    averaged over the rays that ``ray_mask`` keeps, in one launch forward and one backward.
+
+    .. math::
+
+        e_r = c_r + b_r (1 - O_r) - \\hat c_r, \\qquad
+        \\mathrm{loss} = \\frac{\\sum_r m_r \\left(\\tfrac13 \\sum_k \\ell(e_{rk}) + \\lambda x_r\\right)}
+                              {\\max(1, \\sum_r m_r)}, \\qquad
+        \\mathrm{mse} = \\frac{\\sum_r m_r \\tfrac13 \\lVert e_r \\rVert^2}{\\max(1, \\sum_r m_r)}
+
+    with :math:`\\ell(e) = e^2`, or Huber's :math:`\\tfrac12 e^2` for :math:`|e| < \\delta` and
+    :math:`\\delta (|e| - \\delta / 2)` beyond.
+
+    Args:
+        rgb: [N, 3] float32 colour without background :math:`c_r` (differentiable).
+        opacity: [N] float32 :math:`O_r` (differentiable).
+        target: [N, 3] float32 pixel colours :math:`\\hat c_r`, already over ``background``.
+        background: [N, 3] float32 per-ray background :math:`b_r`.
+        ray_mask: optional [N] bool :math:`m_r` (e.g. ``render_rays``'s ``ray_mask``); None: all.
+        extra: optional [N] float32 per-ray term :math:`x_r` (differentiable), e.g. the
+            :func:`distortion_loss_packed` of the rays, weighted by ``extra_weight`` :math:`\\lambda`.
+        huber_delta: None for the squared error, else Huber's :math:`\\delta > 0`.
+
+    Returns:
+        (loss, mse): 0-dim float32 tensors on the rays' device; only ``loss`` has a gradient.
+    """
+    if not isinstance(rgb, torch.Tensor) or rgb.dim() != 2 or rgb.shape[1] != 3:
+        raise ValueError(f"rgb must be [N, 3], got {getattr(rgb, 'shape', type(rgb).__name__)}")
+    n, dev = rgb.shape[0], rgb.device
+    expected = {"rgb": (rgb, (n, 3), torch.float32), "opacity": (opacity, (n,), torch.float32),
+                "target": (target, (n, 3), torch.float32), "background": (background, (n, 3), torch.float32)}
+    if ray_mask is not None:
+        expected["ray_mask"] = (ray_mask, (n,), torch.bool)
+    if extra is not None:
+        expected["extra"] = (extra, (n,), torch.float32)
+    for name, (t, shape, dtype) in expected.items():
+        if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape or t.dtype != dtype or t.device != dev:
+            raise ValueError(f"{name} must be {list(shape)} {dtype} on {dev}, got "
+                             f"{getattr(t, 'shape', type(t).__name__)} {getattr(t, 'dtype', '')}".rstrip())
+    if huber_delta is not None and not huber_delta > 0:
+        raise ValueError(f"huber_delta must be > 0 or None, got {huber_delta}")
+    if not extra_weight >= 0:
+        raise ValueError(f"extra_weight must be ≥ 0, got {extra_weight}")
+    return _RayLoss.apply(rgb.contiguous(), opacity.contiguous(), target.contiguous(), background.contiguous(),
+                          None if ray_mask is None else ray_mask.contiguous(),
+                          None if extra is None else extra.contiguous(), float(extra_weight),
+                          0.0 if huber_delta is None else float(huber_delta))

@@ -9,13 +9,12 @@ import time
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
 
 from ngp_warp.batch import sample_pixels
 from ngp_warp.data import Scene, Split, generate_rays
 from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, INSTANT_NGP_LOG2_HASHMAP_SIZE, FieldConfig, NGPField
 from ngp_warp.graphs import GraphedDensity
-from ngp_warp.losses import distortion_loss_packed
+from ngp_warp.losses import distortion_loss_packed, ray_loss
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.optim import LazyAdam
 from ngp_warp.progress import Progress
@@ -320,20 +319,14 @@ class Trainer:
         self.grid.update(self.step_count, self._density_for_grid)
         rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
         with self._mlp_precision():
-            out = self.render(rays_o, rays_d, background, stratified=True)
-            mask = out.get("ray_mask")  # rays dropped for lack of room in the buffer are left out
-
-            def mean_over_rays(x: torch.Tensor) -> torch.Tensor:
-                return x.mean() if mask is None else (x * mask).sum() / mask.sum().clamp_min(1)
-
-            squared = (out["rgb"] - target).square().mean(-1)
-            if self.config.loss == "huber":
-                loss = mean_over_rays(F.huber_loss(out["rgb"], target, delta=0.1, reduction="none").mean(-1))
-            else:
-                loss = mean_over_rays(squared)
-            if self.config.distortion_weight > 0 and out["n_samples"] > 0:
+            out = self.render(rays_o, rays_d, None, stratified=True)  # the loss blends the background
+            weight = self.config.distortion_weight
+            dist = None
+            if weight > 0 and out["n_samples"] > 0:
                 dist = distortion_loss_packed(out["weights"], out["t_starts"], out["t_ends"], out["ray_offsets"])
-                loss = loss + self.config.distortion_weight * mean_over_rays(dist)
+            # rays dropped for lack of room in the sample buffer (ray_mask) are left out
+            loss, mse = ray_loss(out["rgb"], out["opacity"], target, background, out.get("ray_mask"), dist, weight,
+                                 huber_delta=0.1 if self.config.loss == "huber" else None)
             for opt in self.optimizers():
                 opt.zero_grad(set_to_none=True)
             if out["n_samples"] > 0:
@@ -343,10 +336,7 @@ class Trainer:
                 if self._lerped[0]:
                     torch._foreach_lerp_(self._lerped[0], self._lerped[1], 1.0 - decay)
         n_samples = self._samples_in_use(out)
-        plain_l2 = self.config.loss == "l2" and self.config.distortion_weight == 0
-        mse = loss.detach() if plain_l2 else mean_over_rays(squared.detach())
-        stats = {"loss": loss.detach(), "mse": mse, "rays": self.n_rays,
-                 "samples": n_samples}
+        stats = {"loss": loss.detach(), "mse": mse, "rays": self.n_rays, "samples": n_samples}
         # Hold the sample count: scale the ray count by target / actual (smoothed, clamped).
         ratio = self.target_samples / max(n_samples, 1)
         new = self.n_rays * min(max(ratio, 0.5), 2.0) ** 0.5

@@ -15,3 +15,20 @@ def distortion_loss_ref(weights, t_starts, t_ends, ray_indices, n_rays: int) -> 
         d = (t_ends[s] - t_starts[s]).double()
         out.append((w[:, None] * w[None] * (m[:, None] - m[None]).abs()).sum() + (w * w * d).sum() / 3)
     return torch.stack(out) if out else torch.zeros(0, dtype=torch.float64)
+
+
+def ray_loss_ref(rgb, opacity, target, background, ray_mask=None, extra=None, extra_weight: float = 0.0,
+                 huber_delta: float | None = None):
+    """(loss, mse) of :func:`ngp_warp.losses.ray_loss` in float64 torch (differentiable)."""
+    e = rgb.double() + background.double() * (1 - opacity.double())[:, None] - target.double()
+    if huber_delta is None:
+        per_channel = e * e
+    else:
+        a = e.abs()
+        per_channel = torch.where(a < huber_delta, 0.5 * e * e, huber_delta * (a - 0.5 * huber_delta))
+    per_ray = per_channel.mean(-1)
+    if extra is not None:
+        per_ray = per_ray + extra_weight * extra.double()
+    m = torch.ones_like(per_ray) if ray_mask is None else ray_mask.double()
+    rays = m.sum().clamp_min(1)
+    return (m * per_ray).sum() / rays, (m * (e * e).mean(-1)).sum() / rays
