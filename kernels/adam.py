@@ -29,7 +29,10 @@ def adam_update(p: float, g: float, m: float, v: float, lr_t: float, beta1: floa
     return p * (1.0 - decay) - lr_t * m / (wp.sqrt(v) + eps_t), m, v
 
 
-# Adam on every entry with g ≠ 0.
+# Adam on every entry with g ≠ 0; with an average (has_average ≠ 0), then its average a
+# towards the new p with this step's decay d:
+#   a ← p_old + (a − p_old) exp(L_before − synced)   (catch up: p stood still since the last sync)
+#   a ← p_new + (a − p_new) d,   synced ← L_after = L_before + log d (both from the host)
 @wp.kernel
 def lazy_adam_step(
     first: int,
@@ -42,34 +45,9 @@ def lazy_adam_step(
     beta2: float,
     eps_t: float,
     decay: float,
-):
-    i = first + wp.tid()
-    g = grads[i]
-    if g == 0.0:
-        return
-    p, m, v = adam_update(params[i], g, exp_avg[i], exp_avg_sq[i], lr_t, beta1, beta2, eps_t, decay)
-    params[i] = p
-    exp_avg[i] = m
-    exp_avg_sq[i] = v
-
-
-# Adam on every entry with g ≠ 0, then its average a towards the new p with this step's decay d:
-#   a ← p_old + (a − p_old) exp(L_before − synced)   (catch up: p stood still since the last sync)
-#   a ← p_new + (a − p_new) d,   synced ← L_after = L_before + log d (both from the host)
-@wp.kernel
-def lazy_adam_average_step(
-    first: int,
-    params: wp.array(dtype=float),
-    grads: wp.array(dtype=float),
-    exp_avg: wp.array(dtype=float),
-    exp_avg_sq: wp.array(dtype=float),
+    has_average: int,
     average: wp.array(dtype=float),
     synced: wp.array(dtype=float),
-    lr_t: float,
-    beta1: float,
-    beta2: float,
-    eps_t: float,
-    decay: float,
     log_before: float,
     log_after: float,
     average_decay: float,
@@ -79,13 +57,14 @@ def lazy_adam_average_step(
     if g == 0.0:
         return
     old = params[i]
-    a = old + (average[i] - old) * wp.exp(log_before - synced[i])
     p, m, v = adam_update(old, g, exp_avg[i], exp_avg_sq[i], lr_t, beta1, beta2, eps_t, decay)
     params[i] = p
     exp_avg[i] = m
     exp_avg_sq[i] = v
-    average[i] = p + (a - p) * average_decay
-    synced[i] = log_after
+    if has_average != 0:
+        a = old + (average[i] - old) * wp.exp(log_before - synced[i])
+        average[i] = p + (a - p) * average_decay
+        synced[i] = log_after
 
 
 # Bring every average up to date:  a ← p + (a − p) exp(L − synced),  synced ← L

@@ -117,19 +117,18 @@ class LazyAdam(torch.optim.Optimizer):
                 state["step"] += 1
                 bc1 = 1.0 - beta1 ** state["step"]
                 bc2 = math.sqrt(1.0 - beta2 ** state["step"])
-                adam = [p.view(-1), grad.view(-1), state["exp_avg"].view(-1), state["exp_avg_sq"].view(-1)]
-                hyper = [group["lr"] * bc2 / bc1, beta1, beta2, group["eps"] * bc2, group["lr"] * group["weight_decay"]]
+                adam = [p.view(-1), grad.view(-1), state["exp_avg"].view(-1), state["exp_avg_sq"].view(-1),
+                        group["lr"] * bc2 / bc1, beta1, beta2, group["eps"] * bc2, group["lr"] * group["weight_decay"]]
                 average = self._averages.get(p)
                 if average is None:
-                    _wp.launch(K.lazy_adam_step, p.numel(), adam + hyper, _wp.device_of(p))
+                    _wp.launch(K.lazy_adam_step, p.numel(), adam + [0, None, None, 0.0, 0.0, 0.0], _wp.device_of(p))
                     continue
                 decay = group["average_decay"]
                 if decay is None or not 0.0 < decay < 1.0:
                     raise ValueError(f"LazyAdam keeps an average: set the group's average_decay in (0, 1), got {decay}")
                 before = state["log_decay"]
                 state["log_decay"] = before + math.log(decay)
-                _wp.launch(K.lazy_adam_average_step, p.numel(),
-                           adam + [average.view(-1), state["synced"].view(-1)] + hyper
-                           + [before, state["log_decay"], decay],
+                _wp.launch(K.lazy_adam_step, p.numel(),
+                           adam + [1, average.view(-1), state["synced"].view(-1), before, state["log_decay"], decay],
                            _wp.device_of(p))
         return loss
