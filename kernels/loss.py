@@ -1,8 +1,9 @@
 """The photometric loss of a batch of rays over their backgrounds, reduced over the rays in
 the kernel, and its backward (one launch each instead of a few dozen torch operations).
 
-A thread walks ``RAYS_PER_THREAD`` consecutive rays and adds its partial sums atomically, so
-the four shared sums see few atomics. On the CPU the launch must stay on one thread (Warp's CPU
+A thread walks ``RAYS_PER_THREAD`` rays, a stride of the thread count apart (neighbouring
+threads read neighbouring rays), and adds its partial sums atomically, so the four shared sums
+see few atomics. On the CPU the launch must stay on one thread (Warp's CPU
 atomics are plain read-modify-writes).
 """
 
@@ -10,7 +11,7 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-RAYS_PER_THREAD = 32
+RAYS_PER_THREAD = 8
 
 
 # ℓ(e) per channel: e² (delta ≤ 0), or Huber: e²/2 for |e| < δ, δ (|e| − δ/2) beyond
@@ -51,6 +52,7 @@ def ray_weight(r: int, has_mask: int, mask: wp.array(dtype=wp.uint8)) -> float:
 def ray_loss_sums(
     first: int,
     n_rays: int,
+    n_threads: int,
     rgb: wp.array(dtype=wp.vec3),
     opacity: wp.array(dtype=float),
     background: wp.array(dtype=wp.vec3),
@@ -62,13 +64,12 @@ def ray_loss_sums(
     delta: float,
     sums: wp.array(dtype=float),
 ):
-    lo = (first + wp.tid()) * RAYS_PER_THREAD
-    hi = wp.min(lo + RAYS_PER_THREAD, n_rays)
+    t = first + wp.tid()
     loss = float(0.0)
     squared = float(0.0)
     extras = float(0.0)
     count = float(0.0)
-    for r in range(lo, hi):
+    for r in range(t, n_rays, n_threads):
         m = ray_weight(r, has_mask, mask)
         e = blended_error(r, rgb, opacity, background, target)
         loss += m * (channel_loss(e[0], delta) + channel_loss(e[1], delta) + channel_loss(e[2], delta)) / 3.0

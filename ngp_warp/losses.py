@@ -95,7 +95,7 @@ class _RayLoss(torch.autograd.Function):
         sums = torch.zeros(6, dtype=torch.float32, device=rgb.device)  # 4 sums, loss, mse
         items = -(-n_rays // L.RAYS_PER_THREAD)
         _wp.launch(L.ray_loss_sums, items,
-                   [n_rays, rgb, opacity, background, target, int(mask is not None), mask,
+                   [n_rays, items, rgb, opacity, background, target, int(mask is not None), mask,
                     int(extra is not None), extra, delta, sums],
                    device, align=items)  # one CPU thread: the sums are atomics
         _wp.launch(L.ray_loss_finish, 1, [extra_weight, sums], device)
@@ -103,10 +103,13 @@ class _RayLoss(torch.autograd.Function):
         ctx.extra_weight, ctx.delta, ctx.has_extra = extra_weight, delta, extra is not None
         loss, mse = sums[4], sums[5]
         ctx.mark_non_differentiable(mse)
+        ctx.set_materialize_grads(False)  # no zeros for mse's gradient, which is never used
         return loss, mse
 
     @staticmethod
     def backward(ctx, grad_loss, _grad_mse):
+        if grad_loss is None:
+            return None, None, None, None, None, None, None, None
         rgb, opacity, target, background, mask, sums = ctx.saved_tensors
         grad_rgb, grad_opacity = torch.empty_like(rgb), torch.empty_like(opacity)
         grad_extra = torch.empty_like(opacity) if ctx.has_extra else None

@@ -201,12 +201,14 @@ def render_rays(
     bg = _background(background, n_rays, dev)
     extra = {}
     if sigma_fn is not None:
-        extra = {"n_marched": samples.n_samples, "ray_mask": torch.ones(n_rays, dtype=torch.bool, device=dev),
-                 "n_contributing": torch.zeros(1, dtype=torch.int32, device=dev)}
+        extra = {"n_marched": samples.n_samples}
         if samples.n_samples > 0:
             pruned = _prune(samples, sigma_fn, grid, early_stop_eps, sample_capacity)
             samples = pruned.samples
             extra.update(ray_mask=pruned.ray_mask, n_contributing=pruned.n_contributing)
+        else:
+            extra.update(ray_mask=torch.ones(n_rays, dtype=torch.bool, device=dev),
+                         n_contributing=torch.zeros(1, dtype=torch.int32, device=dev))
     n_samples = samples.n_samples
     if n_samples == 0:
         rgb = torch.zeros(n_rays, 3, device=dev)
