@@ -217,7 +217,7 @@ class Trainer:
                 self.table_optimizer.keep_average(p, average)
             else:
                 self._lerped[0].append(average)
-                self._lerped[1].append(p)
+                self._lerped[1].append(p.detach())  # shares the storage; keeps the lerp out of autograd
         self.grid.mark_invisible_cells(
             self.train_split.c2w, self.train_split.intrinsics, self.train_split.width, self.train_split.height
         )

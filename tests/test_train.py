@@ -95,6 +95,7 @@ def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scen
     for decay, weights in trajectory:
         dense = torch.lerp(dense, weights, 1 - decay)
     assert len(trajectory) == 25 and (dense - table.double()).abs().max() > 1e-4
+    assert not any(a.requires_grad for a in trainer.averaged)  # averaging stays out of autograd
     index = [i for i, p in enumerate(trainer.field.parameters()) if p is table][0]
     torch.testing.assert_close(trainer.averaged_weights()[index].double(), dense, rtol=0, atol=1e-6)
 
