@@ -67,7 +67,8 @@ def lazy_adam_step(
         synced[i] = log_after
 
 
-# Bring every average up to date:  a ← p + (a − p) exp(L − synced),  synced ← L
+# Bring every average up to date and rebase the log-decays to 0 (the host sets L ← 0), so that
+# float32 L stays small:  a ← p + (a − p) exp(L − synced),  synced ← 0
 @wp.kernel
 def flush_average(
     first: int,
@@ -79,4 +80,4 @@ def flush_average(
     i = first + wp.tid()
     p = params[i]
     average[i] = p + (average[i] - p) * wp.exp(log_now - synced[i])
-    synced[i] = log_now
+    synced[i] = 0.0

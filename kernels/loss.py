@@ -85,10 +85,11 @@ def ray_loss_sums(
 
 # loss = (S_ℓ + λ S_x) / max(S_m, 1),   mse = S_e² / max(S_m, 1)   (one thread)
 @wp.kernel
-def ray_loss_finish(first: int, extra_weight: float, sums: wp.array(dtype=float)):
+def ray_loss_finish(first: int, extra_weight: float, sums: wp.array(dtype=float), loss: wp.array(dtype=float),
+                    mse: wp.array(dtype=float)):
     rays = wp.max(sums[3], 1.0)
-    sums[4] = (sums[0] + extra_weight * sums[2]) / rays
-    sums[5] = sums[1] / rays
+    loss[0] = (sums[0] + extra_weight * sums[2]) / rays
+    mse[0] = sums[1] / rays
 
 
 # g_r = ∂loss · m_r / max(S_m, 1):

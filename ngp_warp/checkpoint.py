@@ -21,6 +21,7 @@ class CheckpointError(ValueError):
 
 def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: int) -> None:
     """Write ``path`` atomically (temporary file, then rename)."""
+    averaged = trainer.averaged_weights()  # flush first: the optimizer's state then matches it
     state = {
         "format": FORMAT,
         "scene": {"path": str(Path(scene_path).resolve()), "downscale": int(downscale)},
@@ -29,7 +30,7 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
         "grid": trainer.grid.state_dict(),
         "optimizer": trainer.optimizer.state_dict(),
         "table_optimizer": None if trainer.table_optimizer is None else trainer.table_optimizer.state_dict(),
-        "averaged": trainer.averaged_weights(),
+        "averaged": averaged,
         "step": trainer.step_count,
         "train_seconds": trainer.train_seconds,
         "n_rays": trainer.n_rays,

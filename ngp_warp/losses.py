@@ -25,6 +25,7 @@ class _Distortion(torch.autograd.Function):
         return loss
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_loss):
         weights, t_starts, t_ends, offsets = ctx.saved_tensors
         grad = torch.zeros_like(weights)  # rows of no ray (padding) get none
@@ -92,21 +93,23 @@ class _RayLoss(torch.autograd.Function):
     def forward(ctx, rgb, opacity, target, background, ray_mask, extra, extra_weight: float, delta: float):
         n_rays, device = rgb.shape[0], _wp.device_of(rgb)
         mask = None if ray_mask is None else ray_mask.view(torch.uint8)
-        sums = torch.zeros(6, dtype=torch.float32, device=rgb.device)  # 4 sums, loss, mse
+        sums = torch.zeros(4, dtype=torch.float32, device=rgb.device)
+        loss = torch.empty((), dtype=torch.float32, device=rgb.device)
+        mse = torch.empty((), dtype=torch.float32, device=rgb.device)
         items = -(-n_rays // L.RAYS_PER_THREAD)
         _wp.launch(L.ray_loss_sums, items,
                    [n_rays, items, rgb, opacity, background, target, int(mask is not None), mask,
                     int(extra is not None), extra, delta, sums],
                    device, align=items)  # one CPU thread: the sums are atomics
-        _wp.launch(L.ray_loss_finish, 1, [extra_weight, sums], device)
+        _wp.launch(L.ray_loss_finish, 1, [extra_weight, sums, loss.view(1), mse.view(1)], device)
         ctx.save_for_backward(rgb, opacity, target, background, mask, sums)
         ctx.extra_weight, ctx.delta, ctx.has_extra = extra_weight, delta, extra is not None
-        loss, mse = sums[4], sums[5]
         ctx.mark_non_differentiable(mse)
         ctx.set_materialize_grads(False)  # no zeros for mse's gradient, which is never used
         return loss, mse
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_loss, _grad_mse):
         if grad_loss is None:
             return None, None, None, None, None, None, None, None
@@ -141,8 +144,9 @@ def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, bac
     Args:
         rgb: [N, 3] float32 colour without background :math:`c_r` (differentiable).
         opacity: [N] float32 :math:`O_r` (differentiable).
-        target: [N, 3] float32 pixel colours :math:`\\hat c_r`, already over ``background``.
-        background: [N, 3] float32 per-ray background :math:`b_r`.
+        target: [N, 3] float32 pixel colours :math:`\\hat c_r`, already over ``background``
+            (no gradient).
+        background: [N, 3] float32 per-ray background :math:`b_r` (no gradient).
         ray_mask: optional [N] bool :math:`m_r` (e.g. ``render_rays``'s ``ray_mask``); None: all.
         extra: optional [N] float32 per-ray term :math:`x_r` (differentiable), e.g. the
             :func:`distortion_loss_packed` of the rays, weighted by ``extra_weight`` :math:`\\lambda`.
@@ -164,10 +168,13 @@ def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, bac
         if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape or t.dtype != dtype or t.device != dev:
             raise ValueError(f"{name} must be {list(shape)} {dtype} on {dev}, got "
                              f"{getattr(t, 'shape', type(t).__name__)} {getattr(t, 'dtype', '')}".rstrip())
-    if huber_delta is not None and not huber_delta > 0:
-        raise ValueError(f"huber_delta must be > 0 or None, got {huber_delta}")
-    if not extra_weight >= 0:
-        raise ValueError(f"extra_weight must be ≥ 0, got {extra_weight}")
+    for name, t in (("target", target), ("background", background)):
+        if t.requires_grad:
+            raise ValueError(f"ray_loss gives {name} no gradient; pass it detached (or use a torch loss)")
+    if huber_delta is not None and not (isinstance(huber_delta, (int, float)) and huber_delta > 0):
+        raise ValueError(f"huber_delta must be a number > 0 or None, got {huber_delta!r}")
+    if not (isinstance(extra_weight, (int, float)) and extra_weight >= 0):
+        raise ValueError(f"extra_weight must be a number ≥ 0, got {extra_weight!r}")
     return _RayLoss.apply(rgb.contiguous(), opacity.contiguous(), target.contiguous(), background.contiguous(),
                           None if ray_mask is None else ray_mask.contiguous(),
                           None if extra is None else extra.contiguous(), float(extra_weight),

@@ -10,6 +10,9 @@ from ngp_warp import _wp
 from ngp_warp.kernels import adam as K
 
 
+_REBASE_LOG_DECAY = -64.0  # flush and rebase a kept average's log-decays beyond this
+
+
 class LazyAdam(torch.optim.Optimizer):
     """Adam (torch's update and bias correction) that leaves every entry whose gradient is
     exactly zero in a step as it is, value and moments, as tiny-cuda-nn does for encodings.
@@ -74,12 +77,13 @@ class LazyAdam(torch.optim.Optimizer):
                              f"parameter {tuple(param.shape)} on {param.device}")
         self._averages[param] = average
         state = self.state[param]
-        state.setdefault("log_decay", 0.0)  # L: the sum of log d over the steps so far
-        if "synced" not in state:
-            state["synced"] = torch.zeros_like(param)  # L at each entry's last catch-up
+        state["log_decay"] = 0.0  # L: the sum of log d since the last flush
+        state["synced"] = torch.zeros_like(param)  # L at each entry's last catch-up
 
     def load_state_dict(self, state_dict: dict) -> None:
         super().load_state_dict(state_dict)
+        for group in self.param_groups:  # groups saved before averages existed
+            group.setdefault("average_decay", None)
         for p in self._averages:  # state saved before the average was kept
             state = self.state[p]
             if "synced" not in state:
@@ -89,11 +93,15 @@ class LazyAdam(torch.optim.Optimizer):
     @torch.no_grad()
     def flush_averages(self) -> None:
         """Bring every kept average up to date (one pass over each)."""
-        for p, average in self._averages.items():
-            state = self.state[p]
-            _wp.launch(K.flush_average, p.numel(),
-                       [p.view(-1), average.view(-1), state["synced"].view(-1), state["log_decay"]],
-                       _wp.device_of(p))
+        for p in self._averages:
+            self._flush(p)
+
+    def _flush(self, p: torch.Tensor) -> None:
+        state = self.state[p]
+        _wp.launch(K.flush_average, p.numel(),
+                   [p.view(-1), self._averages[p].view(-1), state["synced"].view(-1), state["log_decay"]],
+                   _wp.device_of(p))
+        state["log_decay"] = 0.0  # the kernel rebased every entry's synced to 0
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -110,6 +118,10 @@ class LazyAdam(torch.optim.Optimizer):
                 if grad.is_sparse or grad.dtype != torch.float32 or not grad.is_contiguous():
                     raise ValueError("LazyAdam needs dense contiguous float32 gradients")
                 state = self.state[p]
+                average = self._averages.get(p)
+                decay = group.get("average_decay")
+                if average is not None and (decay is None or not 0.0 < decay < 1.0):
+                    raise ValueError(f"LazyAdam keeps an average: set the group's average_decay in (0, 1), got {decay}")
                 if "step" not in state:
                     state["step"] = 0
                     state["exp_avg"] = torch.zeros_like(p)
@@ -119,13 +131,11 @@ class LazyAdam(torch.optim.Optimizer):
                 bc2 = math.sqrt(1.0 - beta2 ** state["step"])
                 adam = [p.view(-1), grad.view(-1), state["exp_avg"].view(-1), state["exp_avg_sq"].view(-1),
                         group["lr"] * bc2 / bc1, beta1, beta2, group["eps"] * bc2, group["lr"] * group["weight_decay"]]
-                average = self._averages.get(p)
                 if average is None:
                     _wp.launch(K.lazy_adam_step, p.numel(), adam + [0, None, None, 0.0, 0.0, 0.0], _wp.device_of(p))
                     continue
-                decay = group["average_decay"]
-                if decay is None or not 0.0 < decay < 1.0:
-                    raise ValueError(f"LazyAdam keeps an average: set the group's average_decay in (0, 1), got {decay}")
+                if state["log_decay"] < _REBASE_LOG_DECAY:  # keep float32 L small (about 1e-5 relative)
+                    self._flush(p)
                 before = state["log_decay"]
                 state["log_decay"] = before + math.log(decay)
                 _wp.launch(K.lazy_adam_step, p.numel(),

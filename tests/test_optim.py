@@ -104,6 +104,16 @@ def test_kept_average_equals_a_dense_average_of_its_float64_twin(flush_every):
     torch.testing.assert_close(ours, plain, rtol=0, atol=0)  # keeping the average moves nothing else
 
 
+def test_kept_average_stays_exact_across_log_decay_rebases():
+    p0 = torch.randn(5000)
+    grads = sparse_grads(5000, steps=60, seed=6)
+    decays = [0.1] * 60  # log 0.1 = −2.3 per step: rebased at about step 28
+    ours, average = run_averaged(p0, grads, decays, lr=1e-2)
+    ref, ref_average = lazy_adam_ref(p0, grads, lr=1e-2, average_decays=decays)
+    torch.testing.assert_close(ours.double(), ref, rtol=0, atol=2e-6)
+    torch.testing.assert_close(average.double(), ref_average, rtol=0, atol=2e-6)
+
+
 def test_kept_average_resumes_from_a_state_dict():
     p0 = torch.randn(3000)
     grads = sparse_grads(3000, steps=6, seed=5)

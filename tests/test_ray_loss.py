@@ -47,6 +47,15 @@ def test_values_and_gradients_match_the_float64_twin(device, n, huber_delta, opt
         torch.testing.assert_close(ours[k].grad.double().cpu(), ref[k].grad, rtol=1e-4, atol=1e-8)
 
 
+def test_the_loss_is_a_tensor_of_its_own():
+    x = {k: v.requires_grad_(k == "rgb") for k, v in rays(50, "cpu").items()}
+    loss, mse = ray_loss(**x)
+    before = float(mse)
+    loss += 1.0  # in place, as a user adding a regulariser might
+    loss.backward()
+    assert float(mse) == before and x["rgb"].grad.abs().max() > 0
+
+
 def test_masked_rays_get_no_gradient():
     x = {k: v.requires_grad_(k in ("rgb", "opacity")) for k, v in rays(300, "cpu").items()}
     ray_loss(**x, extra_weight=1.0)[0].backward()
@@ -64,7 +73,8 @@ def test_no_kept_ray_gives_zero_loss():
 @pytest.mark.parametrize("bad", [
     dict(rgb=torch.zeros(5, 4)), dict(opacity=torch.zeros(4)), dict(target=torch.zeros(5, 3, dtype=torch.float64)),
     dict(background=torch.zeros(3)), dict(ray_mask=torch.ones(5)), dict(extra=torch.zeros(6)),
-    dict(huber_delta=0.0), dict(extra_weight=-1.0),
+    dict(huber_delta=0.0), dict(extra_weight=-1.0), dict(huber_delta="0.1"), dict(extra_weight=None),
+    dict(background=torch.zeros(5, 3, requires_grad=True)), dict(target=torch.zeros(5, 3, requires_grad=True)),
 ])
 def test_rejects_bad_inputs_with_a_clear_error(bad):
     x = {**rays(5, "cpu"), **bad}

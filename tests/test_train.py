@@ -83,21 +83,36 @@ def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scen
     start = table.detach().double().clone()
     trajectory = []  # (decay, table after the step) per step
     step = opt.step
+    mlp = trainer.field.mlp_parameters()
+    mlp_trajectory = []  # the MLP's weights after each step
 
     def recording_step(*args, **kwargs):
         result = step(*args, **kwargs)
         trajectory.append((opt.param_groups[0]["average_decay"], table.detach().double().clone()))
         return result
 
-    opt.step = recording_step
+    mlp_step = trainer.optimizer.step
+
+    def recording_mlp_step(*args, **kwargs):
+        result = mlp_step(*args, **kwargs)
+        mlp_trajectory.append([p.detach().double().clone() for p in mlp])
+        return result
+
+    mlp_start = [p.detach().double().clone() for p in mlp]
+    opt.step, trainer.optimizer.step = recording_step, recording_mlp_step
     trainer.train(show_progress=False)
-    dense = start
-    for decay, weights in trajectory:
+    decays = [min(0.995, (1 + s) / (10 + s)) for s in range(25)]  # the trainer's schedule
+    assert [d for d, _ in trajectory] == pytest.approx(decays)
+    dense, mlp_dense = start, mlp_start
+    for decay, weights, mlp_weights in zip(decays, (w for _, w in trajectory), mlp_trajectory, strict=True):
         dense = torch.lerp(dense, weights, 1 - decay)
-    assert len(trajectory) == 25 and (dense - table.double()).abs().max() > 1e-4
+        mlp_dense = [torch.lerp(a, w, 1 - decay) for a, w in zip(mlp_dense, mlp_weights)]
+    assert (dense - table.double()).abs().max() > 1e-4
     assert not any(a.requires_grad for a in trainer.averaged)  # averaging stays out of autograd
-    index = [i for i, p in enumerate(trainer.field.parameters()) if p is table][0]
-    torch.testing.assert_close(trainer.averaged_weights()[index].double(), dense, rtol=0, atol=1e-6)
+    averaged = dict(zip(map(id, trainer.field.parameters()), trainer.averaged_weights()))
+    torch.testing.assert_close(averaged[id(table)].double(), dense, rtol=0, atol=1e-6)
+    for p, expected in zip(mlp, mlp_dense, strict=True):
+        torch.testing.assert_close(averaged[id(p)].double(), expected, rtol=0, atol=1e-6)
 
 
 def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp_path):
