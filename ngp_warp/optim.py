@@ -131,14 +131,12 @@ class LazyAdam(torch.optim.Optimizer):
                 bc2 = math.sqrt(1.0 - beta2 ** state["step"])
                 adam = [p.view(-1), grad.view(-1), state["exp_avg"].view(-1), state["exp_avg_sq"].view(-1),
                         group["lr"] * bc2 / bc1, beta1, beta2, group["eps"] * bc2, group["lr"] * group["weight_decay"]]
-                if average is None:
-                    _wp.launch(K.lazy_adam_step, p.numel(), adam + [0, None, None, 0.0, 0.0, 0.0], _wp.device_of(p))
-                    continue
-                if state["log_decay"] < _REBASE_LOG_DECAY:  # keep float32 L small (about 1e-5 relative)
-                    self._flush(p)
-                before = state["log_decay"]
-                state["log_decay"] = before + math.log(decay)
-                _wp.launch(K.lazy_adam_step, p.numel(),
-                           adam + [1, average.view(-1), state["synced"].view(-1), before, state["log_decay"], decay],
-                           _wp.device_of(p))
+                averaging = [0, None, None, 0.0, 0.0, 0.0]
+                if average is not None:
+                    if state["log_decay"] < _REBASE_LOG_DECAY:  # keep float32 L small (about 1e-5 relative)
+                        self._flush(p)
+                    before = state["log_decay"]
+                    state["log_decay"] = before + math.log(decay)
+                    averaging = [1, average.view(-1), state["synced"].view(-1), before, state["log_decay"], decay]
+                _wp.launch(K.lazy_adam_step, p.numel(), adam + averaging, _wp.device_of(p))
         return loss
