@@ -264,16 +264,18 @@ class Trainer:
 
     def _graphs_apply(self) -> bool:
         cfg = self.config
-        return cfg.cuda_graph and cfg.prune and self.device.type == "cuda" and cfg.mlp_precision != "bf16"
+        return cfg.cuda_graph and cfg.prune and self.device.type == "cuda"
 
     @contextlib.contextmanager
     def _mlp_precision(self):
-        """The MLPs' matmul precision on CUDA (master weights stay float32)."""
+        """The MLPs' matmul precision on CUDA (master weights stay float32). bf16 autocast runs
+        without its cast cache, which CUDA-graph capture requires: the weights' casts are then
+        part of the captured graphs (a few kernels over 13 k weights)."""
         mode = self.config.mlp_precision
         if self.device.type != "cuda" or mode == "fp32":
             yield
         elif mode == "bf16":
-            with torch.autocast("cuda", dtype=torch.bfloat16):
+            with torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False):
                 yield
         else:  # tf32 (the constructor checked the mode)
             saved = torch.backends.cuda.matmul.allow_tf32
