@@ -332,7 +332,10 @@ class Trainer:
             for opt in self.optimizers():
                 opt.zero_grad(set_to_none=True)
             if out["n_samples"] > 0:
-                loss.backward()
+                # On the calling thread: handing the backward to autograd's CUDA worker thread
+                # and back cost 0.45 ms of host time per step (H200, 2^16 rows: 2.20 → 1.76 ms).
+                with torch.autograd.set_multithreading_enabled(False):
+                    loss.backward()
                 for opt in self.optimizers():
                     opt.step()
                 if self._lerped[0]:
