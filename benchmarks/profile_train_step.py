@@ -95,7 +95,7 @@ def main() -> None:
         sync()
     events = prof.key_averages()
     sort = "cuda_time_total" if trainer.device.type == "cuda" else "cpu_time_total"
-    print(events.table(sort_by=sort, row_limit=22, max_name_column_width=60))
+    print(events.table(sort_by=sort, row_limit=40, max_name_column_width=60))
     if trainer.device.type == "cuda":  # where the host time goes (a host-bound step)
         print(events.table(sort_by="self_cpu_time_total", row_limit=30, max_name_column_width=60))
     kernels = [e for e in events if e.device_type == DeviceType.CUDA]

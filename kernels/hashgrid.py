@@ -498,6 +498,16 @@ def get_kernels(config: KernelConfig) -> Kernels:
                 return
         red_pair(grad, e, v)
 
+    @wp.func
+    def any_nonzero(v: V) -> bool:
+        if wp.static(F == 1):
+            return v != 0.0
+        else:
+            hit = False
+            for k in range(F):
+                hit = hit or v[k] != 0.0
+            return hit
+
     @wp.kernel(enable_backward=False, module=module, grid_stride=False)
     def backward_params(
         first: int,
@@ -518,6 +528,8 @@ def get_kernels(config: KernelConfig) -> Kernels:
             level = grp * KG + j * K + lane
             if level < n_levels:
                 go = load_stream(grad_out, p * n_levels + level)
+                if not any_nonzero(go):
+                    continue  # e.g. the padding rows of a pruned batch: adding zeros changes nothing
                 m = meta[level]
                 res = wp.uint32(m[0])
                 off = wp.uint32(m[1])

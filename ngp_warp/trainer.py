@@ -39,7 +39,8 @@ class TrainConfig:
     steps_per_diagonal: int = 1024      # marching step = finest cascade's diagonal / this
     cone_angle: float = 0.0
     early_stop_eps: float = 1e-4
-    mlp_precision: str = "fp32"         # CUDA only: "fp32", "tf32" matmuls, or "bf16" autocast
+    mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
+                                        # field's graphs, "tf32" matmuls, or "fp32"
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
     cuda_graph: bool = True             # CUDA with prune: replay the field's forward/backward as graphs
     weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step

@@ -326,3 +326,27 @@ def test_cuda_half_gradient_and_stream():
     torch.cuda.synchronize()
     assert rel_err(y, y64) < 2e-6
     assert rel_err(gp16, gp64) < 3e-3
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+@pytest.mark.parametrize("cfg", [CONFIGS[0], CONFIGS[2], CONFIGS[4]], ids=lambda c: f"D{c[0]}F{c[2]}")
+def test_table_gradient_with_zero_and_partly_zero_upstream_gradients(cfg, device):
+    """The table backward skips (point, level) pairs whose upstream gradient is zero (the padding
+    rows of a pruned batch); pairs with one nonzero feature must still count."""
+    D, L, F, T, base, scale, interp, n, (lo, hi) = cfg
+    enc = HashGridEncoding(D, L, F, T, base, scale, interp, device=device)
+    with torch.no_grad():
+        enc.params.uniform_(-1.0, 1.0)
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(n, D, generator=g) * (hi - lo) + lo
+    grad = torch.randn(n, L, F, generator=g)
+    kind = torch.randint(0, 3, (n, L), generator=g)  # 0: all zero, 1: one feature kept, 2: all kept
+    keep = torch.zeros(n, L, F)
+    keep[kind == 2] = 1.0
+    keep[..., 0][kind == 1] = 1.0
+    grad = (grad * keep).reshape(n, L * F)
+    grad[: n // 4] = 0.0  # whole rows without gradient, as padding rows
+    (_, gp, _), (_, gp64, _) = run_both(enc, x.to(device), grad.to(device))
+    assert rel_err(gp.cpu(), gp64.cpu()) < 2e-6
+    # entries that only zero-gradient pairs touched get exactly zero (LazyAdam leaves them alone)
+    assert torch.equal(gp.cpu() == 0, gp64.cpu() == 0)
