@@ -74,7 +74,7 @@ def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
     d = d.detach().float().contiguous()
     out = torch.empty(d.shape[0], 16, device=d.device, dtype=torch.float32)
     device = _wp.device_of(d)
-    _wp.launch(sh_kernels.sh_deg4, d.shape[0], [_wp.to_wp(d, dtype=wp.vec3), _wp.to_wp(out.view(-1, 4), dtype=wp.vec4)], device)
+    _wp.launch(sh_kernels.sh_deg4, d.shape[0], [_wp.to_wp(d, dtype=wp.vec3), _wp.to_wp(out)], device)
     return out
 
 
