@@ -45,7 +45,6 @@ def time_phases(trainer: Trainer) -> dict[str, float]:
     trainer.field_fn = timed("  field forward", trainer.field_fn)
     for opt in trainer.optimizers():
         opt.step = timed("optimizer", opt.step)
-        opt.zero_grad = timed("zero_grad", opt.zero_grad)
     ngp_warp.trainer.ray_loss = timed("loss forward", ngp_warp.trainer.ray_loss)
     ngp_warp.trainer.distortion_loss_packed = timed("distortion forward", ngp_warp.trainer.distortion_loss_packed)
     torch.Tensor.backward = timed("backward (autograd engine)", torch.Tensor.backward)

@@ -32,7 +32,46 @@ def count_contributing(
     counts[r] = i - start
 
 
-# Item i < S: sample i (of ray r, k-th in it) goes to row new_offsets[r] + k when k < kept[r].
+# Rays are kept whole, in order, while their contributing samples fit: with the inclusive prefix
+# sums c_r of the counts and M = the largest c_r ≤ capacity (0 if none),
+#   new_offsets[0] = 0,  new_offsets[r + 1] = min(c_r, M),
+#   ray_mask[r] = (c_r ≤ capacity or the ray has no contributing sample).
+# (c is non-decreasing, so the rays that fit are a prefix and min(c_r, M) is their prefix sum.)
+# One item per entry of new_offsets; each finds M by binary search.
+@wp.kernel
+def fit_rays(
+    first: int,
+    n_rays: int,
+    capacity: int,
+    inclusive: wp.array(dtype=wp.int32),
+    new_offsets: wp.array(dtype=wp.int32),
+    ray_mask: wp.array(dtype=wp.uint8),
+):
+    r = first + wp.tid()
+    lo = int(0)  # M = inclusive[lo - 1]: the first lo entries are ≤ capacity
+    hi = n_rays
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if int(inclusive[mid]) <= capacity:
+            lo = mid + 1
+        else:
+            hi = mid
+    m = int(0)
+    if lo > 0:
+        m = int(inclusive[lo - 1])
+    if r == 0:
+        new_offsets[0] = 0
+    else:
+        new_offsets[r] = wp.min(int(inclusive[r - 1]), m)
+    if r < n_rays:
+        before = int(0)
+        if r > 0:
+            before = int(inclusive[r - 1])
+        ray_mask[r] = wp.uint8(int(inclusive[r]) <= capacity or int(inclusive[r]) == before)
+
+
+# Item i < S: sample i (of ray r, k-th in it) goes to row new_offsets[r] + k when k is below the
+# ray's kept count new_offsets[r + 1] − new_offsets[r].
 # Item i < capacity past the kept rows (new_offsets[n_rays]): a padding row, ray n_rays, an empty
 # interval [0, 0] at pad_position looking along +z.
 @wp.kernel
@@ -43,7 +82,6 @@ def pack_contributing(
     n_rays: int,
     ray_indices: wp.array(dtype=wp.int64),
     offsets: wp.array(dtype=wp.int32),
-    kept: wp.array(dtype=wp.int32),
     new_offsets: wp.array(dtype=wp.int32),
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
@@ -60,8 +98,9 @@ def pack_contributing(
     if i < n_samples:
         r = int(ray_indices[i])
         k = i - int(offsets[r])
-        if k < kept[r]:
-            j = int(new_offsets[r]) + k
+        start = int(new_offsets[r])
+        if k < int(new_offsets[r + 1]) - start:
+            j = start + k
             out_ray_indices[j] = ray_indices[i]
             out_t_starts[j] = t_starts[i]
             out_t_ends[j] = t_ends[i]

@@ -80,18 +80,16 @@ def prune_samples(
     offsets = samples.ray_offsets
     n_rays, dev = offsets.shape[0] - 1, offsets.device
     device = _wp.device_of(offsets)
-    counts = torch.zeros(n_rays, dtype=torch.int32, device=dev)
+    counts = torch.empty(n_rays, dtype=torch.int32, device=dev)
     _wp.launch(K.count_contributing, n_rays, [sigmas.contiguous(), samples.t_starts, samples.t_ends, offsets,
                                               float(early_stop_eps), counts], device, block_dim=_BLOCK)
     inclusive = torch.cumsum(counts, 0, dtype=torch.int32)
     n_contributing = inclusive[-1:] if n_rays else counts.new_zeros(1)
     if capacity is None:
         capacity = int(n_contributing)  # the host synchronisation that sizes the output
-    fits = inclusive <= capacity
-    kept = torch.where(fits, counts, 0)
-    ray_mask = fits | (counts == 0)
-    new_offsets = torch.zeros(n_rays + 1, dtype=torch.int32, device=dev)
-    torch.cumsum(kept, 0, dtype=torch.int32, out=new_offsets[1:])
+    new_offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=dev)
+    ray_mask = torch.empty(n_rays, dtype=torch.bool, device=dev)
+    _wp.launch(K.fit_rays, n_rays + 1, [n_rays, capacity, inclusive, new_offsets, ray_mask.view(torch.uint8)], device)
     ray_indices = torch.empty(capacity, dtype=torch.int64, device=dev)
     floats = torch.empty(8 * capacity, dtype=torch.float32, device=dev)
     t_starts, t_ends = floats[:capacity], floats[capacity : 2 * capacity]
@@ -99,7 +97,7 @@ def prune_samples(
     directions = floats[5 * capacity :].view(capacity, 3)
     _wp.launch(
         K.pack_contributing, max(n_samples, capacity),
-        [n_samples, capacity, n_rays, samples.ray_indices, offsets, kept, new_offsets, samples.t_starts,
+        [n_samples, capacity, n_rays, samples.ray_indices, offsets, new_offsets, samples.t_starts,
          samples.t_ends, samples.positions, samples.directions, wp.vec3(*pad_position),
          ray_indices, t_starts, t_ends, positions, directions],
         device,

@@ -211,9 +211,10 @@ class Trainer:
         self._graphed_density = None  # likewise (see _sigma_fn)
         # Exponential moving average of the weights, used for rendering when enabled. The lazy
         # table optimizer keeps the table's; the rest are lerped after each step.
-        self.averaged = [p.detach().clone() for p in self.field.parameters()] if cfg.weight_average > 0 else None
+        self._params = list(self.field.parameters())
+        self.averaged = [p.detach().clone() for p in self._params] if cfg.weight_average > 0 else None
         self._lerped: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
-        for p, average in zip(self.field.parameters(), self.averaged or []):
+        for p, average in zip(self._params, self.averaged or []):
             if self.table_optimizer is not None and any(p is q for q in table["params"]):
                 self.table_optimizer.keep_average(p, average)
             else:
@@ -330,8 +331,8 @@ class Trainer:
             # rays dropped for lack of room in the sample buffer (ray_mask) are left out
             loss, mse = ray_loss(out["rgb"], out["opacity"], target, background, out.get("ray_mask"), dist, weight,
                                  huber_delta=0.1 if self.config.loss == "huber" else None)
-            for opt in self.optimizers():
-                opt.zero_grad(set_to_none=True)
+            for p in self._params:  # what zero_grad(set_to_none=True) does, at a 20th of its host time
+                p.grad = None
             if out["n_samples"] > 0:
                 # On the calling thread: handing the backward to autograd's CUDA worker thread
                 # and back cost 0.45 ms of host time per step (H200, 2^16 rows: 2.20 → 1.76 ms).

@@ -52,7 +52,7 @@ def test_capacity_packs_a_fixed_buffer_and_drops_rays_that_do_not_fit():
     samples, sigmas = random_samples(seed=1)
     full = prune_samples(samples, sigmas, 1e-2)
     total = full.samples.n_samples
-    for capacity in (total // 2, total + 37):
+    for capacity in (1, total // 2, total + 37):  # 1: (almost) no ray fits
         out = prune_samples(samples, sigmas, 1e-2, capacity=capacity, pad_position=(0.5, 0.25, 0.75))
         s = out.samples
         assert s.n_samples == capacity and int(out.n_contributing) == total
