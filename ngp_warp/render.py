@@ -221,8 +221,10 @@ def render_rays(
         if not isinstance(rgbs, torch.Tensor) or tuple(rgbs.shape) != (n_samples, 3):
             raise ValueError(f"field_fn must return rgbs of shape [{n_samples}, 3], "
                              f"got {getattr(rgbs, 'shape', type(rgbs).__name__)}")
+        if sigmas.dim() != 1:  # [S, 1]; a reshape of [S] would add a node to the backward
+            sigmas = sigmas.reshape(n_samples)
         rgb, opacity, depth, weights = composite_packed(
-            sigmas.reshape(n_samples).float().contiguous(), rgbs.float().contiguous(),
+            sigmas.float().contiguous(), rgbs.float().contiguous(),
             samples.t_starts, samples.t_ends, samples.ray_offsets, early_stop_eps,
         )
     if bg is not None:
