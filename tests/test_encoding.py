@@ -329,7 +329,7 @@ def test_cuda_half_gradient_and_stream():
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
-@pytest.mark.parametrize("cfg", [CONFIGS[0], CONFIGS[2], CONFIGS[4]], ids=lambda c: f"D{c[0]}F{c[2]}")
+@pytest.mark.parametrize("cfg", [CONFIGS[0], CONFIGS[2], CONFIGS[3], CONFIGS[4]], ids=lambda c: f"D{c[0]}F{c[2]}")
 def test_table_gradient_with_zero_and_partly_zero_upstream_gradients(cfg, device):
     """The table backward skips (point, level) pairs whose upstream gradient is zero (the padding
     rows of a pruned batch); pairs with one nonzero feature must still count."""
@@ -343,7 +343,8 @@ def test_table_gradient_with_zero_and_partly_zero_upstream_gradients(cfg, device
     kind = torch.randint(0, 3, (n, L), generator=g)  # 0: all zero, 1: one feature kept, 2: all kept
     keep = torch.zeros(n, L, F)
     keep[kind == 2] = 1.0
-    keep[..., 0][kind == 1] = 1.0
+    one = torch.nn.functional.one_hot(torch.randint(0, F, (n, L), generator=g), F).float()
+    keep[kind == 1] = one[kind == 1]  # a random one of the F features
     grad = (grad * keep).reshape(n, L * F)
     grad[: n // 4] = 0.0  # whole rows without gradient, as padding rows
     (_, gp, _), (_, gp64, _) = run_both(enc, x.to(device), grad.to(device))

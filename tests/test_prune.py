@@ -52,7 +52,7 @@ def test_capacity_packs_a_fixed_buffer_and_drops_rays_that_do_not_fit():
     samples, sigmas = random_samples(seed=1)
     full = prune_samples(samples, sigmas, 1e-2)
     total = full.samples.n_samples
-    for capacity in (1, total // 2, total + 37):  # 1: (almost) no ray fits
+    for capacity in (1, total // 2, total + 37):  # 1: only ray 0 (one contributing sample) fits
         out = prune_samples(samples, sigmas, 1e-2, capacity=capacity, pad_position=(0.5, 0.25, 0.75))
         s = out.samples
         assert s.n_samples == capacity and int(out.n_contributing) == total
@@ -65,6 +65,7 @@ def test_capacity_packs_a_fixed_buffer_and_drops_rays_that_do_not_fit():
         assert capacity > total or (empty[kept_rays:].any() and not out.ray_mask[kept_rays:].all())
         end = int(s.ray_offsets[-1])
         assert end == int(full.samples.ray_offsets[kept_rays]) <= capacity
+        assert torch.equal(s.ray_offsets, full.samples.ray_offsets.clamp(max=end))
         assert capacity < total or kept_rays == 40
         assert capacity >= total or end + int(full.samples.ray_offsets[kept_rays + 1] - full.samples.ray_offsets[kept_rays]) > capacity
         assert torch.equal(s.t_starts[:end], full.samples.t_starts[:end])
@@ -72,6 +73,22 @@ def test_capacity_packs_a_fixed_buffer_and_drops_rays_that_do_not_fit():
         pad = slice(end, capacity)
         assert (s.ray_indices[pad] == 40).all() and not s.t_starts[pad].any() and not s.t_ends[pad].any()
         assert torch.equal(s.positions[pad], torch.tensor([0.5, 0.25, 0.75]).expand(capacity - end, 3))
+
+
+def test_capacity_below_the_first_ray_and_no_rays():
+    samples, sigmas = random_samples(seed=1)
+    sigmas = torch.full_like(sigmas, 1e-3)  # nearly empty: every sample of every ray contributes
+    counts = torch.diff(samples.ray_offsets)
+    first = int((counts > 0).int().argmax())  # the first ray with samples: more than one of them
+    assert counts[first] > 1
+    out = prune_samples(samples, sigmas, 1e-2, capacity=int(counts[first]) - 1)
+    assert not out.samples.ray_offsets.any()  # no ray fits: every row is padding
+    assert torch.equal(out.ray_mask, counts == 0)
+    empty = RaySamples(*(t[:0] for t in (samples.ray_indices, samples.t_starts, samples.t_ends, samples.positions,
+                                          samples.directions)), torch.zeros(1, dtype=torch.int32))
+    out = prune_samples(empty, sigmas[:0], 1e-2, capacity=4)
+    assert out.ray_mask.shape == (0,) and out.samples.ray_offsets.tolist() == [0]
+    assert int(out.n_contributing) == 0 and (out.samples.ray_indices == 0).all()
 
 
 def test_render_with_sigma_fn_gives_the_same_pixels_and_gradients():
