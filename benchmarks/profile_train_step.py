@@ -50,7 +50,7 @@ def time_phases(trainer: Trainer) -> dict[str, float]:
     torch.Tensor.backward = timed("backward (autograd engine)", torch.Tensor.backward)
     torch._foreach_lerp_ = timed("MLP average lerp", torch._foreach_lerp_)
     make_sigma_fn = trainer._sigma_fn  # returns the density function the render then calls
-    trainer._sigma_fn = lambda: timed("  density pass (no grad)", make_sigma_fn())
+    trainer._sigma_fn = lambda: timed("  density passes (no grad; the grid refresh's included)", make_sigma_fn())
     return spent
 
 

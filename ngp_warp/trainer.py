@@ -235,8 +235,9 @@ class Trainer:
         return warm * 0.33 ** sum(progress >= m for m in (0.5, 0.75, 0.9))
 
     def _density_for_grid(self, x: torch.Tensor) -> torch.Tensor:
-        # The grid stores optical thickness of one step, as instant-ngp and nerfacc do.
-        return self.field.density(x) * self.step_size
+        # The grid stores optical thickness of one step, as instant-ngp and nerfacc do. Its
+        # refresh evaluates chunks of 2^18 cells, one more bucket for the graphed density pass.
+        return self._sigma_fn()(x) * self.step_size
 
     def field_fn(self, positions: torch.Tensor, directions: torch.Tensor):
         """The field; in CUDA training with pruning, its forward and backward replay CUDA graphs
@@ -256,8 +257,9 @@ class Trainer:
         return self.field(positions, directions)
 
     def _sigma_fn(self):
-        """The no-gradient density pass before pruning: in CUDA training with graphs, replayed
-        per bucket of sample counts (see :class:`ngp_warp.graphs.GraphedDensity`)."""
+        """The no-gradient density pass (before pruning, and for the grid refresh): in CUDA
+        training with graphs, replayed per bucket of sample counts (see
+        :class:`ngp_warp.graphs.GraphedDensity`)."""
         if not self._graphs_apply():
             return self.field.density
         if self._graphed_density is None:
@@ -321,7 +323,8 @@ class Trainer:
             self.table_optimizer.param_groups[0]["average_decay"] = decay
         if not self.field.training:  # Module.train() walks every submodule: 27 µs a step
             self.field.train()
-        self.grid.update(self.step_count, self._density_for_grid)
+        with self._mlp_precision():  # as the density pass before pruning, whose graphs it shares
+            self.grid.update(self.step_count, self._density_for_grid)
         rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
         with self._mlp_precision():
             out = self.render(rays_o, rays_d, None, stratified=True)  # the loss blends the background
