@@ -57,17 +57,15 @@ def fit_rays(
         else:
             hi = mid
     m = int(0)
+    before = int(0)  # c_{r-1}, 0 for r = 0
     if lo > 0:
         m = int(inclusive[lo - 1])
-    if r == 0:
-        new_offsets[0] = 0
-    else:
-        new_offsets[r] = wp.min(int(inclusive[r - 1]), m)
+    if r > 0:
+        before = int(inclusive[r - 1])
+    new_offsets[r] = wp.min(before, m)
     if r < n_rays:
-        before = int(0)
-        if r > 0:
-            before = int(inclusive[r - 1])
-        ray_mask[r] = wp.uint8(int(inclusive[r]) <= capacity or int(inclusive[r]) == before)
+        c = int(inclusive[r])
+        ray_mask[r] = wp.uint8(c <= capacity or c == before)
 
 
 # Item i < S: sample i (of ray r, k-th in it) goes to row new_offsets[r] + k when k is below the

@@ -323,10 +323,9 @@ class Trainer:
             self.table_optimizer.param_groups[0]["average_decay"] = decay
         if not self.field.training:  # Module.train() walks every submodule: 27 µs a step
             self.field.train()
-        with self._mlp_precision():  # as the density pass before pruning, whose graphs it shares
+        with self._mlp_precision():  # the grid refresh shares the graphs of the density pass
             self.grid.update(self.step_count, self._density_for_grid)
-        rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
-        with self._mlp_precision():
+            rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
             out = self.render(rays_o, rays_d, None, stratified=True)  # the loss blends the background
             weight = self.config.distortion_weight
             dist = None
