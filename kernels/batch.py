@@ -37,14 +37,17 @@ def undistort(xd: float, yd: float, k: wp.vec4):
     return wp.vec2(x, y)
 
 
-# Ray i: image k, pixel (px, py) drawn uniformly (Warp's RNG keyed by seed and i), then
-#   x = (px + 1/2 − cx) / fx,  y = (py + 1/2 − cy) / fy  (undistorted when has_distortion),
+# Ray i: sub-ray s = i mod sub² of pixel q = i div sub²; the pixel's image k and (px, py) are
+# drawn uniformly (Warp's RNG keyed by seed and q, so a pixel's sub-rays agree), then
+#   x = (px + ox − cx) / fx,  y = (py + oy − cy) / fy  (undistorted when has_distortion),
+#   (ox, oy) = ((s mod sub) + 1/2, (s div sub) + 1/2) / sub  (the pixel centre for sub = 1),
 #   d = R (x, −y, −1) / |R (x, −y, −1)|,  o = t  for the camera-to-world [R | t] of image k;
 #   bg ~ U[0, 1)³ with an alpha channel (else white), target = rgb a + bg (1 − a), values / 255.
 @wp.kernel
 def sample_pixels(
     first: int,
     seed: int,
+    sub: int,
     n_images: int,
     width: int,
     height: int,
@@ -61,15 +64,19 @@ def sample_pixels(
     background: wp.array(dtype=wp.vec3),
 ):
     i = first + wp.tid()
-    rng = wp.rand_init(seed, i)
+    q = i // (sub * sub)
+    s = i - q * sub * sub
+    rng = wp.rand_init(seed, q)
     k = wp.randi(rng, 0, n_images)
     px = wp.randi(rng, 0, width)
     py = wp.randi(rng, 0, height)
     pixels[i] = wp.vec3i(k, px, py)
 
     f = intrinsics[k]
-    x = (float(px) + 0.5 - f[2]) / f[0]
-    y = (float(py) + 0.5 - f[3]) / f[1]
+    ox = (float(s % sub) + 0.5) / float(sub)
+    oy = (float(s // sub) + 0.5) / float(sub)
+    x = (float(px) + ox - f[2]) / f[0]
+    y = (float(py) + oy - f[3]) / f[1]
     if has_distortion != 0:
         u = undistort(x, y, distortion[k])
         x = u[0]

@@ -27,10 +27,12 @@ class PixelBatch(NamedTuple):
     pixels: torch.Tensor
 
 
-def sample_pixels(split: Split, n: int, seed: int) -> PixelBatch:
+def sample_pixels(split: Split, n: int, seed: int, sub: int = 1) -> PixelBatch:
     """``n`` pixels drawn uniformly over all images of ``split`` (with replacement): rays,
     targets and backgrounds in one launch. The draw is a function of ``seed`` only (the same on
-    CPU and CUDA): pass a new seed each step.
+    CPU and CUDA): pass a new seed each step. With ``sub`` > 1 each pixel gets ``sub²`` rays on
+    a regular sub-pixel grid (rows ``j sub² ... (j + 1) sub² − 1`` for pixel j, x fastest), all
+    with the pixel's target and background: ``n sub²`` rows in all.
 
     .. math::
         \\mathrm{target} = \\mathrm{rgb}\\,a + \\mathrm{bg}\\,(1 - a), \\qquad \\mathrm{bg} \\sim U[0, 1)^3
@@ -39,6 +41,9 @@ def sample_pixels(split: Split, n: int, seed: int) -> PixelBatch:
         raise ValueError(f"n must be a positive integer, got {n!r}")
     if not isinstance(seed, int):
         raise ValueError(f"seed must be an integer, got {seed!r}")
+    if not (isinstance(sub, int) and sub >= 1):
+        raise ValueError(f"sub must be a positive integer, got {sub!r}")
+    n *= sub * sub
     images = split.images
     if not images.is_contiguous():
         raise ValueError("split.images must be contiguous")
@@ -50,7 +55,7 @@ def sample_pixels(split: Split, n: int, seed: int) -> PixelBatch:
                      torch.empty(n, 3, dtype=torch.int32, device=dev))
     _wp.launch(
         K.sample_pixels, n,
-        [seed & 0x7FFFFFFF, len(split), split.width, split.height, images.shape[-1], int(split.has_distortion),
+        [seed & 0x7FFFFFFF, sub, len(split), split.width, split.height, images.shape[-1], int(split.has_distortion),
          images.view(-1), split.c2w.reshape(-1).contiguous(), split.intrinsics.contiguous(),
          split.distortion.contiguous(), out.pixels, out.rays_o, out.rays_d, out.target, out.background],
         _wp.device_of(images),

@@ -46,6 +46,9 @@ class TrainConfig:
     weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step
     lazy_table_adam: bool = True        # Adam skips hash-table entries with zero gradient (tiny-cuda-nn),
                                         # and keeps their weight average in the same pass
+    supersample: int = 1                # > 1: each training pixel is the mean of supersample² rays on a
+                                        # sub-pixel grid (as the images were area-downsampled), and
+                                        # renders average the same grid; the finest level follows
     distortion_weight: float | None = None  # weight of the mean distortion loss per ray (t in world
                                         # units); None: 1e-3 on CUDA, 0 on the CPU (see device_defaults)
     field: FieldConfig = field(default_factory=FieldConfig)
@@ -96,7 +99,7 @@ def _parse_value(declared: str, text: str, key: str):
         raise ValueError(f"{key} takes {'an integer' if kind == 'int' else 'a number'}, got {text!r}") from None
 
 
-def pixel_matched_resolution(scene: Scene) -> float:
+def pixel_matched_resolution(scene: Scene, subpixels: int = 1) -> float:
     """The finest hash-grid resolution whose cells are about one training pixel wide at the
     field box's centre: the box's longest side over the median pixel footprint (camera distance
     to the centre over the focal length fx), rounded, clamped to [64, 2048 per unit cube]
@@ -111,7 +114,7 @@ def pixel_matched_resolution(scene: Scene) -> float:
     box = scene.aabb.double()
     centre = 0.5 * (box[:3] + box[3:])
     distance = (split.c2w[:, :, 3].double() - centre).norm(dim=-1)
-    footprint = float((distance / split.intrinsics[:, 0].double()).median())
+    footprint = float((distance / split.intrinsics[:, 0].double()).median()) / subpixels
     side = float((box[3:] - box[:3]).max())
     unit = float((scene.occupancy_aabb[3:] - scene.occupancy_aabb[:3]).max())
     ceiling = INSTANT_NGP_FINEST_RESOLUTION * side / unit
@@ -171,6 +174,8 @@ class Trainer:
             raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
         if cfg.mlp_precision not in ("fp32", "tf32", "bf16"):
             raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {cfg.mlp_precision!r}")
+        if not (isinstance(cfg.supersample, int) and 1 <= cfg.supersample <= 4):
+            raise ValueError(f"supersample must be 1, 2, 3 or 4, got {cfg.supersample!r}")
         if not 0.0 <= cfg.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {cfg.weight_average}")
         self.device = torch.device(device or default_device())
@@ -178,7 +183,7 @@ class Trainer:
         cfg = self.config = device_defaults(cfg, self.device.type)
         if cfg.field.finest_resolution is None:
             cfg = self.config = dataclasses.replace(cfg, field=dataclasses.replace(
-                cfg.field, finest_resolution=pixel_matched_resolution(scene)))
+                cfg.field, finest_resolution=pixel_matched_resolution(scene, cfg.supersample)))
         if not cfg.distortion_weight >= 0.0:
             raise ValueError(f"distortion_weight must be ≥ 0, got {cfg.distortion_weight}")
         torch.manual_seed(cfg.seed)
@@ -308,7 +313,8 @@ class Trainer:
         """Random pixels across all training images → (rays_o, rays_d, target rgb, background),
         drawn in one launch from a seed that mixes the config's seed with the step count."""
         seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B) & 0x7FFFFFFF
-        b = sample_pixels(self.train_split, n, seed)
+        sub = self.config.supersample
+        b = sample_pixels(self.train_split, max(1, n // (sub * sub)), seed, sub)
         return b.rays_o, b.rays_d, b.target, b.background
 
     def step(self, progress: float = 0.0) -> dict:
@@ -332,7 +338,14 @@ class Trainer:
             if weight > 0 and out["n_samples"] > 0:
                 dist = distortion_loss_packed(out["weights"], out["t_starts"], out["t_ends"], out["ray_offsets"])
             # rays dropped for lack of room in the sample buffer (ray_mask) are left out
-            loss, mse = ray_loss(out["rgb"], out["opacity"], target, background, out.get("ray_mask"), dist, weight,
+            rgb, opacity, mask = out["rgb"], out["opacity"], out.get("ray_mask")
+            k = self.config.supersample ** 2
+            if k > 1:  # a pixel is the mean of its k sub-rays (kept only if all of them are)
+                rgb, opacity = rgb.view(-1, k, 3).mean(1), opacity.view(-1, k).mean(1)
+                target, background = target[::k].contiguous(), background[::k].contiguous()
+                mask = None if mask is None else mask.view(-1, k).all(1)
+                dist = None if dist is None else dist.view(-1, k).mean(1)
+            loss, mse = ray_loss(rgb, opacity, target, background, mask, dist, weight,
                                  huber_delta=0.1 if self.config.loss == "huber" else None)
             for p in self._params:  # what zero_grad(set_to_none=True) does, at a 20th of its host time
                 p.grad = None
@@ -444,14 +457,18 @@ class Trainer:
         dist = None if distortion is None else distortion.to(dev).expand(n, 4)
         bg = torch.full((3,), float(background), device=dev)
         parts = {"rgb": [], "depth": [], "opacity": []}
+        sub = self.config.supersample  # the training pixels' sub-pixel grid, offsets from the centre
+        shifts = [((a + 0.5) / sub - 0.5, (b + 0.5) / sub - 0.5) for b in range(sub) for a in range(sub)]
         for lo in range(0, n, chunk):
             hi = min(n, lo + chunk)
-            rays_o, rays_d = generate_rays(c2w[lo:hi], intr[lo:hi], None if dist is None else dist[lo:hi],
-                                           px[lo:hi], py[lo:hi])
-            with self._mlp_precision():
-                outs = [self.render(rays_o, rays_d, bg, stratified=spp > 1) for _ in range(spp)]
+            outs = []
+            for dx, dy in shifts:
+                rays_o, rays_d = generate_rays(c2w[lo:hi], intr[lo:hi], None if dist is None else dist[lo:hi],
+                                               px[lo:hi] + dx, py[lo:hi] + dy)
+                with self._mlp_precision():
+                    outs += [self.render(rays_o, rays_d, bg, stratified=spp > 1) for _ in range(spp)]
             for k in parts:
-                parts[k].append(sum(out[k].float() for out in outs) / spp)
+                parts[k].append(sum(out[k].float() for out in outs) / len(outs))
         return {
             "rgb": torch.cat(parts["rgb"]).reshape(height, width, 3).clamp(0, 1),
             "depth": torch.cat(parts["depth"]).reshape(height, width),

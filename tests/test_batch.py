@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from ngp_warp.batch import sample_pixels
-from ngp_warp.data import Split
+from ngp_warp.data import Split, generate_rays
 from ngp_warp.trainer import composite_on
 
 
@@ -67,3 +67,22 @@ def test_cuda_draws_what_the_cpu_draws():
     assert torch.equal(gpu.pixels.cpu(), cpu.pixels)
     for a, b in zip(gpu[:4], cpu[:4]):
         torch.testing.assert_close(a.cpu(), b, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("sub", [2, 3])
+def test_sub_pixel_rays_share_their_pixel_and_sit_on_a_grid(sub):
+    split = random_split(distortion=True)
+    b = sample_pixels(split, 500, seed=3, sub=sub)
+    k = sub * sub
+    assert b.rays_d.shape == (500 * k, 3)
+    for t in (b.pixels, b.target, b.background):  # a pixel's sub-rays agree
+        assert torch.equal(t.view(500, k, 3), t[::k, None].expand(500, k, 3))
+    assert b.background.std() > 0.2
+    img, px, py = b.pixels.long().unbind(-1)
+    grid = (torch.arange(sub) + 0.5) / sub - 0.5  # offsets from the pixel centre, x fastest
+    dx, dy = grid.repeat(sub).repeat(500), grid.repeat_interleave(sub).repeat(500)
+    rays_o, rays_d = generate_rays(split.c2w[img], split.intrinsics[img], split.distortion[img], px + dx, py + dy)
+    torch.testing.assert_close(b.rays_d, rays_d, rtol=0, atol=2e-5)
+    assert (b.rays_d[0::k] - b.rays_d[1::k]).norm(dim=-1).min() > 0  # not all through the centre
+    with pytest.raises(ValueError, match="sub must be"):
+        sample_pixels(split, 5, seed=0, sub=0)

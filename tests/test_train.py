@@ -1,5 +1,6 @@
 """End-to-end training on a tiny generated scene (CPU), checkpoints and resume."""
 
+import dataclasses
 import math
 
 import pytest
@@ -268,3 +269,23 @@ def test_distortion_weight_adds_the_distortion_loss(tiny_scene):
     trainer.train(show_progress=False)
     stats = trainer.step()
     assert float(stats["loss"]) > float(stats["mse"]) > 0
+
+
+def test_supersampled_training_fits_pixels_as_means_of_sub_rays(tiny_scene):
+    cfg = apply_overrides(tiny_config(300), ["supersample=2"])
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+    batch = trainer.sample_batch(1000)[0]
+    assert batch.shape == (1000, 3)  # 250 pixels, four sub-rays each
+    before = mean_psnr(trainer)
+    trainer.train(show_progress=False)
+    assert mean_psnr(trainer) > before + 8.0
+    camera = trainer.scene.test
+    one = trainer.render_image(camera.c2w[0], camera.intrinsics[0], camera.width, camera.height)
+    trainer.config = dataclasses.replace(trainer.config, supersample=1)
+    centre = trainer.render_image(camera.c2w[0], camera.intrinsics[0], camera.width, camera.height)
+    assert 0 < (one["rgb"] - centre["rgb"]).abs().mean() < 0.05  # the mean of four sub-pixel renders
+    with pytest.raises(ValueError, match="supersample"):
+        Trainer(load_scene(tiny_scene), apply_overrides(tiny_config(1), ["supersample=0"]), device="cpu")
+    scene = load_scene(tiny_scene)
+    scene.train.intrinsics = scene.train.intrinsics * 10  # clear of the 64-cell floor
+    assert abs(pixel_matched_resolution(scene, 2) - 2 * pixel_matched_resolution(scene)) <= 1
