@@ -65,7 +65,7 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
         scene = load_scene(record["path"], downscale=record["downscale"])
     except DataError as e:
         raise CheckpointError(f"{path}: cannot reload its scene: {e}") from None
-    cfg_dict = dict(state["train_config"])
+    cfg_dict = {"supersample": 1, **state["train_config"]}  # trained before sub-rays: one ray per pixel
     try:
         cfg = TrainConfig(**{**cfg_dict, "field": FieldConfig(**cfg_dict["field"])})
     except TypeError as e:  # a setting this version does not have

@@ -46,9 +46,9 @@ class TrainConfig:
     weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step
     lazy_table_adam: bool = True        # Adam skips hash-table entries with zero gradient (tiny-cuda-nn),
                                         # and keeps their weight average in the same pass
-    supersample: int = 1                # > 1: each training pixel is the mean of supersample² rays on a
-                                        # sub-pixel grid (as the images were area-downsampled), and
-                                        # renders average the same grid; the finest level follows
+    supersample: int | None = None      # > 1: each training pixel is the mean of supersample² rays on
+                                        # a sub-pixel grid (as the images were area-downsampled), and
+                                        # renders average the same grid; None: 2 on CUDA, 1 on the CPU
     distortion_weight: float | None = None  # weight of the mean distortion loss per ray (t in world
                                         # units); None: 1e-3 on CUDA, 0 on the CPU (see device_defaults)
     field: FieldConfig = field(default_factory=FieldConfig)
@@ -103,18 +103,21 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1) -> float:
     """The finest hash-grid resolution whose cells are about one training pixel wide at the
     field box's centre: the box's longest side over the median pixel footprint (camera distance
     to the centre over the focal length fx), rounded, clamped to [64, 2048 per unit cube]
-    (instant-ngp's 2048 × aabb_scale).
+    (instant-ngp's 2048 × aabb_scale). Training on ``subpixels``² rays per pixel makes the cells
+    √subpixels times finer.
 
     On lego at 400×400 this gives 413 cells. Measured there after 60 s (RESULTS.md): finest
     256 / 362 / 512 / 724 / 1024 / 2048 give 34.97 / 35.31 / 35.25 / 35.03 / 34.74 / 34.43 dB:
     levels finer than the pixels let the field fit each training ray on its own, which the test
-    views do not share.
+    views do not share. With 2×2 sub-rays per pixel (H200, 300 s, 25 views) finest 413 / 584 /
+    826 gave 36.67 / 36.84 / 36.70 dB, and with 3×3, 716 against 1239 cells gave 36.95 against
+    36.76 dB: the sub-rays resolve detail finer than a pixel, but not a full sub-pixel's worth.
     """
     split = scene.train
     box = scene.aabb.double()
     centre = 0.5 * (box[:3] + box[3:])
     distance = (split.c2w[:, :, 3].double() - centre).norm(dim=-1)
-    footprint = float((distance / split.intrinsics[:, 0].double()).median()) / subpixels
+    footprint = float((distance / split.intrinsics[:, 0].double()).median()) / math.sqrt(subpixels)
     side = float((box[3:] - box[:3]).max())
     unit = float((scene.occupancy_aabb[3:] - scene.occupancy_aabb[:3]).max())
     ceiling = INSTANT_NGP_FINEST_RESOLUTION * side / unit
@@ -124,18 +127,22 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1) -> float:
 def device_defaults(config: TrainConfig, device_type: str) -> TrainConfig:
     """``config`` with the settings left to None that depend on the device filled in.
 
-    On CUDA: a 2^21-entry table per level and a distortion loss of weight 1e-3. On lego (H200,
-    schedule over 300 s, benchmarks/RESULTS.md) the two together gave 34.59 / 35.01 / 34.89 dB
-    at 15 / 60 / 300 s against 34.35 / 34.85 / 34.86 dB with instant-ngp's 2^19 and no
-    distortion, for 2.84 against 2.38 ms per step. On the CPU: 2^19 and no distortion loss
-    (their cost per step there is unmeasured against their gain).
+    On CUDA: 2×2 sub-rays per training pixel, a 2^21-entry table per level and a distortion loss
+    of weight 1e-3. On lego (H200, schedule over 300 s, 200 views, RESULTS.md) the sub-rays took
+    the 300 s PSNR from 34.75 to 36.61 dB. Before them the table and the distortion loss together
+    gave 34.59 / 35.01 / 34.89 dB at 15 / 60 / 300 s against 34.35 / 34.85 / 34.86 dB with
+    instant-ngp's 2^19 and no distortion, for 2.84 against 2.38 ms per step. On the CPU: one ray
+    per pixel, 2^19 and no distortion loss (their cost per step there is unmeasured against
+    their gain).
     """
     cuda = device_type == "cuda"
     field_cfg = config.field
     if field_cfg.log2_hashmap_size is None:
         field_cfg = dataclasses.replace(field_cfg, log2_hashmap_size=21 if cuda else INSTANT_NGP_LOG2_HASHMAP_SIZE)
     weight = config.distortion_weight
-    return dataclasses.replace(config, field=field_cfg, distortion_weight=(1e-3 if cuda else 0.0) if weight is None else weight)
+    supersample = (2 if cuda else 1) if config.supersample is None else config.supersample
+    return dataclasses.replace(config, field=field_cfg, supersample=supersample,
+                               distortion_weight=(1e-3 if cuda else 0.0) if weight is None else weight)
 
 
 def default_device() -> str:
@@ -174,13 +181,13 @@ class Trainer:
             raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
         if cfg.mlp_precision not in ("fp32", "tf32", "bf16"):
             raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {cfg.mlp_precision!r}")
-        if not (isinstance(cfg.supersample, int) and 1 <= cfg.supersample <= 4):
-            raise ValueError(f"supersample must be 1, 2, 3 or 4, got {cfg.supersample!r}")
         if not 0.0 <= cfg.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {cfg.weight_average}")
         self.device = torch.device(device or default_device())
         # settings left to None are resolved here, so checkpoints store the numbers used
         cfg = self.config = device_defaults(cfg, self.device.type)
+        if not (isinstance(cfg.supersample, int) and 1 <= cfg.supersample <= 4):
+            raise ValueError(f"supersample must be 1, 2, 3 or 4, got {cfg.supersample!r}")
         if cfg.field.finest_resolution is None:
             cfg = self.config = dataclasses.replace(cfg, field=dataclasses.replace(
                 cfg.field, finest_resolution=pixel_matched_resolution(scene, cfg.supersample)))

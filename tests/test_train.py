@@ -241,14 +241,15 @@ def test_trainer_resolves_an_unset_finest_resolution_and_checkpoints_it(tiny_sce
     assert loaded.config.field.finest_resolution == trainer.config.field.finest_resolution
 
 
-@pytest.mark.parametrize("device,table,distortion", [("cuda", 21, 1e-3), ("cpu", 19, 0.0)])
-def test_unset_table_size_and_distortion_weight_follow_the_device(device, table, distortion):
+@pytest.mark.parametrize("device,table,distortion,sub", [("cuda", 21, 1e-3, 2), ("cpu", 19, 0.0, 1)])
+def test_unset_table_size_distortion_and_supersample_follow_the_device(device, table, distortion, sub):
     cfg = device_defaults(TrainConfig(), device)
-    assert (cfg.field.log2_hashmap_size, cfg.distortion_weight) == (table, distortion)
-    assert (TrainConfig().field.log2_hashmap_size, TrainConfig().distortion_weight) == (None, None)
-    chosen = TrainConfig(distortion_weight=0.0, field=FieldConfig(log2_hashmap_size=17))
+    assert (cfg.field.log2_hashmap_size, cfg.distortion_weight, cfg.supersample) == (table, distortion, sub)
+    unset = TrainConfig()
+    assert (unset.field.log2_hashmap_size, unset.distortion_weight, unset.supersample) == (None, None, None)
+    chosen = TrainConfig(distortion_weight=0.0, supersample=3, field=FieldConfig(log2_hashmap_size=17))
     kept = device_defaults(chosen, device)
-    assert (kept.field.log2_hashmap_size, kept.distortion_weight) == (17, 0.0)
+    assert (kept.field.log2_hashmap_size, kept.distortion_weight, kept.supersample) == (17, 0.0, 3)
 
 
 def test_trainer_checkpoints_the_resolved_device_defaults(tiny_scene, tmp_path):
@@ -288,4 +289,4 @@ def test_supersampled_training_fits_pixels_as_means_of_sub_rays(tiny_scene):
         Trainer(load_scene(tiny_scene), apply_overrides(tiny_config(1), ["supersample=0"]), device="cpu")
     scene = load_scene(tiny_scene)
     scene.train.intrinsics = scene.train.intrinsics * 10  # clear of the 64-cell floor
-    assert abs(pixel_matched_resolution(scene, 2) - 2 * pixel_matched_resolution(scene)) <= 1
+    assert abs(pixel_matched_resolution(scene, 4) - 2 * pixel_matched_resolution(scene)) <= 1  # √4 × finer
