@@ -93,13 +93,14 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, sp
     schedule_seconds = trainer.config.seconds
     dev = trainer.device
     rows = []
-    rays, samples = [], []
+    rays, samples, marched = [], [], []
     for mark in marks:
         steps0, t0 = trainer.step_count, trainer.train_seconds
         while trainer.train_seconds < mark:
             stats = trainer.step(progress=trainer.train_seconds / schedule_seconds)
             rays.append(stats["rays"])
             samples.append(stats["samples"])
+            marched.append(stats["marched"])
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
         ms = 1000 * (trainer.train_seconds - t0) / max(trainer.step_count - steps0, 1)
@@ -109,6 +110,7 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, sp
             "seconds": mark, "train_seconds": trainer.train_seconds, "steps": trainer.step_count,
             "psnr": float(np.mean(scores)), "n_test": len(scores), "ms_per_step": ms,
             "rays_per_step": float(np.mean(rays[-50:])), "samples_per_step": float(np.mean(samples[-50:])),
+            "marched_per_step": float(np.mean(marched[-50:])),
         }
         if spp > 1:
             row["psnr_spp"] = float(np.mean([psnr(out["rgb"], gt) for _, out, gt in
@@ -117,6 +119,7 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, sp
         rows.append(row)
         print(f"{mark:6.0f} s  step {row['steps']:6d}  PSNR {row['psnr']:6.2f} dB  {ms:6.2f} ms/step  "
               f"rays {row['rays_per_step']:8.0f}  samples {row['samples_per_step']:9.0f}"
+              f"  marched {row['marched_per_step']:9.0f}"
               + (f"  PSNR at {spp} spp {row['psnr_spp']:6.2f} dB" if spp > 1 else ""), flush=True)
     return rows
 
@@ -167,12 +170,12 @@ def main() -> None:
     plotted = _plot(rows, out / "psnr_vs_time.png", f"{Path(args.scene).name} on {name}")
     print()
     schedule = "one run per checkpoint" if args.schedule_per_checkpoint else f"one run, schedule over {marks[-1]:g} s"
-    print(f"| train s | steps | test PSNR (dB) | ms/step | rays/step | samples/step |   "
+    print(f"| train s | steps | test PSNR (dB) | ms/step | rays/step | samples/step trained | marched |   "
           f"({name}, commit {result['commit']}, {schedule})")
-    print("| ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         print(f"| {r['seconds']:.0f} | {r['steps']} | {r['psnr']:.2f} | {r['ms_per_step']:.2f} | "
-              f"{r['rays_per_step']:.0f} | {r['samples_per_step']:.0f} |")
+              f"{r['rays_per_step']:.0f} | {r['samples_per_step']:.0f} | {r['marched_per_step']:.0f} |")
     if peak is not None:
         print(f"peak GPU memory {peak:.2f} GiB")
     print(f"wrote {out / 'bench_train.json'}" + (f" and {out / 'psnr_vs_time.png'}" if plotted else " (no matplotlib: no plot)"))

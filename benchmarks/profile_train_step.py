@@ -76,11 +76,12 @@ def main() -> None:
     sync()
     spent.clear()
     start = time.perf_counter()
-    for _ in range(args.timed):
-        trainer.step()
+    counts = [trainer.step() for _ in range(args.timed)]
     sync()
     step_ms = (time.perf_counter() - start) / args.timed * 1e3
-    print(f"warm step: {step_ms:.2f} ms, rays {trainer.n_rays}")
+    mean = {k: sum(c[k] for c in counts) / len(counts) for k in ("rays", "samples", "marched")}
+    print(f"warm step: {step_ms:.2f} ms; per step: rays {mean['rays']:.0f}, samples marched "
+          f"{mean['marched']:.0f}, trained on {mean['samples']:.0f}")
     print("| phase | host ms per step |\n| --- | ---: |")
     for name, seconds in spent.items():
         print(f"| {name} | {seconds / args.timed * 1e3:.3f} |")

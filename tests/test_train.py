@@ -263,6 +263,20 @@ def test_trainer_checkpoints_the_resolved_device_defaults(tiny_scene, tmp_path):
     assert (loaded.config.field.log2_hashmap_size, loaded.config.distortion_weight) == (19, 0.0)
 
 
+@pytest.mark.parametrize("prune", [True, False])
+def test_step_reports_marched_and_trained_sample_counts(tiny_scene, prune):
+    cfg = tiny_config(30)
+    cfg.prune = prune
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+    trainer.train(show_progress=False)
+    stats = trainer.step()
+    assert isinstance(stats["marched"], int) and isinstance(stats["samples"], int)
+    if prune:  # trained on: the marched samples that composite (all of them, early on)
+        assert stats["marched"] >= stats["samples"] > 0
+    else:
+        assert stats["marched"] == stats["samples"] > 0
+
+
 def test_distortion_weight_adds_the_distortion_loss(tiny_scene):
     cfg = tiny_config(3)
     cfg.distortion_weight = 0.5
