@@ -46,7 +46,9 @@ def _with_settings(cfg, args):
     if args.target_samples:
         cfg.target_samples = args.target_samples
     try:
-        return apply_overrides(cfg, args.set)
+        cfg = apply_overrides(cfg, args.set)
+        cfg.check()
+        return cfg
     except ValueError as e:
         raise UserError(f"--set: {e}") from None
 
@@ -88,7 +90,10 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
         scene_path, downscale = Path(record["path"]), record["downscale"]  # what the run trained on
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
-        trainer = Trainer(scene, config, device=device)
+        try:
+            trainer = Trainer(scene, config, device=device)
+        except ValueError as e:  # a field size the encoding rejects
+            raise UserError(f"--set: {e}") from None
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
           f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "

@@ -53,6 +53,25 @@ class TrainConfig:
                                         # units); None: 1e-3 on CUDA, 0 on the CPU (see device_defaults)
     field: FieldConfig = field(default_factory=FieldConfig)
 
+    def check(self) -> None:
+        """Raise ValueError naming the first setting outside its range (None is left to the
+        device). The field's sizes are checked where the field is built."""
+        choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4)}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {getattr(self, name)!r}")
+        for name in ("steps", "seconds", "target_samples", "initial_rays", "max_rays", "lr", "grid_resolution",
+                     "steps_per_diagonal"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name} must be > 0, got {value!r}")
+        for name in ("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"):
+            value = getattr(self, name)
+            if value is not None and not value >= 0:
+                raise ValueError(f"{name} must be ≥ 0, got {value!r}")
+        if not 0.0 <= self.weight_average < 1.0:
+            raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
+
     def budget(self) -> tuple[int | None, float | None]:
         if self.steps is None and self.seconds is None:
             return 20000, None
@@ -177,22 +196,13 @@ class Trainer:
 
     def __init__(self, scene: Scene, config: TrainConfig | None = None, device: str | None = None):
         self.config = cfg = config or TrainConfig()
-        if cfg.loss not in ("l2", "huber"):
-            raise ValueError(f"loss must be l2 or huber, got {cfg.loss!r}")
-        if cfg.mlp_precision not in ("fp32", "tf32", "bf16"):
-            raise ValueError(f"mlp_precision must be fp32, tf32 or bf16, got {cfg.mlp_precision!r}")
-        if not 0.0 <= cfg.weight_average < 1.0:
-            raise ValueError(f"weight_average must be in [0, 1), got {cfg.weight_average}")
+        cfg.check()
         self.device = torch.device(device or default_device())
         # settings left to None are resolved here, so checkpoints store the numbers used
         cfg = self.config = device_defaults(cfg, self.device.type)
-        if not (isinstance(cfg.supersample, int) and 1 <= cfg.supersample <= 4):
-            raise ValueError(f"supersample must be 1, 2, 3 or 4, got {cfg.supersample!r}")
         if cfg.field.finest_resolution is None:
             cfg = self.config = dataclasses.replace(cfg, field=dataclasses.replace(
                 cfg.field, finest_resolution=pixel_matched_resolution(scene, cfg.supersample)))
-        if not cfg.distortion_weight >= 0.0:
-            raise ValueError(f"distortion_weight must be ≥ 0, got {cfg.distortion_weight}")
         torch.manual_seed(cfg.seed)
         self.scene = scene
         self.train_split: Split = scene.train.to(self.device)

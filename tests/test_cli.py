@@ -117,6 +117,11 @@ def test_bad_settings_are_one_line_and_create_nothing(scene, tmp_path, capsys):
     assert "unknown setting" in one_line_error(capsys)
     assert main(["train", str(scene), "--out", str(out), "--resume", "--set", "lr=1e-3"]) == 2
     assert "keeps the settings in its checkpoint" in one_line_error(capsys)
+    for setting, message in [("supersample=7", "supersample must be one of"), ("loss=l1", "loss must be one of"),
+                             ("lr=0", "lr must be > 0"), ("distortion_weight=-1", "distortion_weight must be ≥ 0"),
+                             ("field.n_features_per_level=3", "n_features_per_level must be 1, 2, 4 or 8")]:
+        assert main(["train", str(scene), "--out", str(out), "--device", "cpu", "--set", setting]) == 2
+        assert message in one_line_error(capsys)
     assert not out.exists()
 
 

@@ -263,6 +263,15 @@ def test_trainer_checkpoints_the_resolved_device_defaults(tiny_scene, tmp_path):
     assert (loaded.config.field.log2_hashmap_size, loaded.config.distortion_weight) == (19, 0.0)
 
 
+@pytest.mark.parametrize("setting", ["steps=0", "seconds=-1", "target_samples=0", "grid_resolution=0", "lr=-1e-3",
+                                     "cone_angle=-0.1", "weight_average=1", "supersample=0", "mlp_precision=fp16"])
+def test_config_check_names_the_setting_out_of_range(setting):
+    cfg = apply_overrides(TrainConfig(), [setting])
+    with pytest.raises(ValueError, match=setting.split("=")[0]):
+        cfg.check()
+    TrainConfig().check()  # the defaults, None included, pass
+
+
 @pytest.mark.parametrize("prune", [True, False])
 def test_step_reports_marched_and_trained_sample_counts(tiny_scene, prune):
     cfg = tiny_config(30)
