@@ -38,7 +38,8 @@ def undistort(xd: float, yd: float, k: wp.vec4):
 
 
 # Ray i: sub-ray s = i mod sub² of pixel q = i div sub²; the pixel's image k and (px, py) are
-# drawn uniformly (Warp's RNG keyed by seed and q, so a pixel's sub-rays agree), then
+# drawn uniformly (Warp's RNG keyed by seed and q, so a pixel's sub-rays agree; its first
+# sub-ray writes the pixel's row q of pixels, target and background), then
 #   x = (px + ox − cx) / fx,  y = (py + oy − cy) / fy  (undistorted when has_distortion),
 #   (ox, oy) = ((s mod sub) + 1/2, (s div sub) + 1/2) / sub  (the pixel centre for sub = 1),
 #   d = R (x, −y, −1) / |R (x, −y, −1)|,  o = t  for the camera-to-world [R | t] of image k;
@@ -70,7 +71,6 @@ def sample_pixels(
     k = wp.randi(rng, 0, n_images)
     px = wp.randi(rng, 0, width)
     py = wp.randi(rng, 0, height)
-    pixels[i] = wp.vec3i(k, px, py)
 
     f = intrinsics[k]
     ox = (float(s % sub) + 0.5) / float(sub)
@@ -97,5 +97,7 @@ def sample_pixels(
         bg = wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
         a = float(images[p + 3]) / 255.0
         rgb = rgb * a + bg * (1.0 - a)
-    background[i] = bg
-    target[i] = rgb
+    if s == 0:
+        pixels[q] = wp.vec3i(k, px, py)
+        background[q] = bg
+        target[q] = rgb

@@ -1,8 +1,9 @@
-"""The photometric loss of a batch of rays over their backgrounds, reduced over the rays in
-the kernel, and its backward (one launch each instead of a few dozen torch operations).
+"""The photometric loss of a batch of pixels (each the mean of k rays) over their backgrounds,
+reduced over the pixels in the kernel, and its backward (one launch each instead of a few dozen
+torch operations).
 
-A thread walks ``RAYS_PER_THREAD`` rays, a stride of the thread count apart (neighbouring
-threads read neighbouring rays), and adds its partial sums atomically, so the four shared sums
+A thread walks ``RAYS_PER_THREAD`` pixels, a stride of the thread count apart (neighbouring
+threads read neighbouring pixels), and adds its partial sums atomically, so the four shared sums
 see few atomics. On the CPU the launch must stay on one thread (Warp's CPU
 atomics are plain read-modify-writes).
 """
@@ -33,25 +34,38 @@ def channel_loss_grad(e: float, delta: float) -> float:
     return wp.clamp(e, -delta, delta)
 
 
+# A pixel p is the mean of its k rays r = p k ... p k + k − 1 (k = 1: one ray per pixel):
+#   e_p = mean_r rgb_r + b_p (1 − mean_r o_r) − target_p
 @wp.func
-def blended_error(r: int, rgb: wp.array(dtype=wp.vec3), opacity: wp.array(dtype=float),
+def blended_error(p: int, k: int, rgb: wp.array(dtype=wp.vec3), opacity: wp.array(dtype=float),
                   background: wp.array(dtype=wp.vec3), target: wp.array(dtype=wp.vec3)) -> wp.vec3:
-    return rgb[r] + background[r] * (1.0 - opacity[r]) - target[r]
+    c = wp.vec3(0.0)
+    o = float(0.0)
+    for r in range(p * k, p * k + k):
+        c += rgb[r]
+        o += opacity[r]
+    inv = 1.0 / float(k)
+    return c * inv + background[p] * (1.0 - o * inv) - target[p]
 
 
+# m_p: 1 when the mask keeps all of the pixel's rays (no mask: 1)
 @wp.func
-def ray_weight(r: int, has_mask: int, mask: wp.array(dtype=wp.uint8)) -> float:
+def pixel_weight(p: int, k: int, has_mask: int, mask: wp.array(dtype=wp.uint8)) -> float:
     if has_mask == 0:
         return 1.0
-    return float(mask[r])
+    m = float(1.0)
+    for r in range(p * k, p * k + k):
+        m = wp.min(m, float(mask[r]))
+    return m
 
 
-# e = rgb + b (1 − o) − target per ray r, mask m_r ∈ {0, 1}, extra term x_r:
-#   sums += [Σ m_r mean_c ℓ(e_c), Σ m_r mean_c e_c², Σ m_r x_r, Σ m_r]
+# e_p per pixel p, mask m_p ∈ {0, 1}, extra term x_p = mean_r x_r over its rays:
+#   sums += [Σ m_p mean_c ℓ(e_c), Σ m_p mean_c e_c², Σ m_p x_p, Σ m_p]
 @wp.kernel
 def ray_loss_sums(
     first: int,
-    n_rays: int,
+    n_pixels: int,
+    k: int,
     n_threads: int,
     rgb: wp.array(dtype=wp.vec3),
     opacity: wp.array(dtype=float),
@@ -69,13 +83,16 @@ def ray_loss_sums(
     squared = float(0.0)
     extras = float(0.0)
     count = float(0.0)
-    for r in range(t, n_rays, n_threads):
-        m = ray_weight(r, has_mask, mask)
-        e = blended_error(r, rgb, opacity, background, target)
+    for p in range(t, n_pixels, n_threads):
+        m = pixel_weight(p, k, has_mask, mask)
+        e = blended_error(p, k, rgb, opacity, background, target)
         loss += m * (channel_loss(e[0], delta) + channel_loss(e[1], delta) + channel_loss(e[2], delta)) / 3.0
         squared += m * wp.dot(e, e) / 3.0
         if has_extra != 0:
-            extras += m * extra[r]
+            x = float(0.0)
+            for r in range(p * k, p * k + k):
+                x += extra[r]
+            extras += m * x / float(k)
         count += m
     wp.atomic_add(sums, 0, loss)
     wp.atomic_add(sums, 1, squared)
@@ -92,11 +109,12 @@ def ray_loss_finish(first: int, extra_weight: float, sums: wp.array(dtype=float)
     mse[0] = sums[1] / rays
 
 
-# g_r = ∂loss · m_r / max(S_m, 1):
-#   ∂rgb_r = g_r ℓ'(e) / 3,   ∂o_r = −⟨∂rgb_r, b_r⟩,   ∂x_r = λ g_r
+# ray r of pixel p = r div k, g_p = ∂loss · m_p / (k max(S_m, 1)):
+#   ∂rgb_r = g_p ℓ'(e_p) / 3,   ∂o_r = −⟨∂rgb_r, b_p⟩,   ∂x_r = λ g_p
 @wp.kernel
 def ray_loss_backward(
     first: int,
+    k: int,
     rgb: wp.array(dtype=wp.vec3),
     opacity: wp.array(dtype=float),
     background: wp.array(dtype=wp.vec3),
@@ -113,11 +131,12 @@ def ray_loss_backward(
     grad_extra: wp.array(dtype=float),
 ):
     r = first + wp.tid()
-    g = grad_loss[0] * ray_weight(r, has_mask, mask) / wp.max(sums[3], 1.0)
-    e = blended_error(r, rgb, opacity, background, target)
+    p = r // k
+    g = grad_loss[0] * pixel_weight(p, k, has_mask, mask) / (wp.max(sums[3], 1.0) * float(k))
+    e = blended_error(p, k, rgb, opacity, background, target)
     d = (g / 3.0) * wp.vec3(channel_loss_grad(e[0], delta), channel_loss_grad(e[1], delta),
                             channel_loss_grad(e[2], delta))
     grad_rgb[r] = d
-    grad_opacity[r] = -wp.dot(d, background[r])
+    grad_opacity[r] = -wp.dot(d, background[p])
     if has_extra != 0:
         grad_extra[r] = extra_weight * g

@@ -12,12 +12,14 @@ from ngp_warp.kernels import batch as K
 
 
 class PixelBatch(NamedTuple):
-    """Rays through random pixels of a split and their colours (all float32 on the split's device).
+    """Rays through random pixels of a split and their colours (float32 on the split's device),
+    for n pixels of k = sub² rays each.
 
-    rays_o, rays_d: [n, 3] camera centres and unit directions (as :func:`ngp_warp.cameras.generate_rays`).
+    rays_o, rays_d: [n k, 3] camera centres and unit directions (as
+        :func:`ngp_warp.cameras.generate_rays`); rows j k ... (j + 1) k − 1 are pixel j's.
     target: [n, 3] pixel colours in [0, 1], alpha blended over ``background``.
     background: [n, 3] uniform random colours for images with alpha, else white.
-    pixels: [n, 3] int32 (image index, px, py) of each ray.
+    pixels: [n, 3] int32 (image index, px, py) of each pixel.
     """
 
     rays_o: torch.Tensor
@@ -31,8 +33,9 @@ def sample_pixels(split: Split, n: int, seed: int, sub: int = 1) -> PixelBatch:
     """``n`` pixels drawn uniformly over all images of ``split`` (with replacement): rays,
     targets and backgrounds in one launch. The draw is a function of ``seed`` only (the same on
     CPU and CUDA): pass a new seed each step. With ``sub`` > 1 each pixel gets ``sub²`` rays on
-    a regular sub-pixel grid (rows ``j sub² ... (j + 1) sub² − 1`` for pixel j, x fastest), all
-    with the pixel's target and background: ``n sub²`` rows in all.
+    a regular sub-pixel grid (rows ``j sub² ... (j + 1) sub² − 1`` for pixel j, x fastest):
+    ``n sub²`` rays for ``n`` targets (:func:`ngp_warp.losses.ray_loss` with
+    ``rays_per_pixel=sub²`` takes their mean).
 
     .. math::
         \\mathrm{target} = \\mathrm{rgb}\\,a + \\mathrm{bg}\\,(1 - a), \\qquad \\mathrm{bg} \\sim U[0, 1)^3
@@ -43,7 +46,6 @@ def sample_pixels(split: Split, n: int, seed: int, sub: int = 1) -> PixelBatch:
         raise ValueError(f"seed must be an integer, got {seed!r}")
     if not (isinstance(sub, int) and sub >= 1):
         raise ValueError(f"sub must be a positive integer, got {sub!r}")
-    n *= sub * sub
     images = split.images
     if not images.is_contiguous():
         raise ValueError("split.images must be contiguous")
@@ -51,10 +53,11 @@ def sample_pixels(split: Split, n: int, seed: int, sub: int = 1) -> PixelBatch:
     for name in ("c2w", "intrinsics", "distortion"):
         if getattr(split, name).device != dev:
             raise ValueError(f"split.{name} is on {getattr(split, name).device}, its images on {dev}")
-    out = PixelBatch(*(torch.empty(n, 3, dtype=torch.float32, device=dev) for _ in range(4)),
+    rays = n * sub * sub
+    out = PixelBatch(*(torch.empty(m, 3, dtype=torch.float32, device=dev) for m in (rays, rays, n, n)),
                      torch.empty(n, 3, dtype=torch.int32, device=dev))
     _wp.launch(
-        K.sample_pixels, n,
+        K.sample_pixels, rays,
         [seed & 0x7FFFFFFF, sub, len(split), split.width, split.height, images.shape[-1], int(split.has_distortion),
          images.view(-1), split.c2w.reshape(-1).contiguous(), split.intrinsics.contiguous(),
          split.distortion.contiguous(), out.pixels, out.rays_o, out.rays_d, out.target, out.background],

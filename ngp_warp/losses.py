@@ -90,20 +90,20 @@ class _RayLoss(torch.autograd.Function):
     """The Warp forward and hand-written backward of :func:`ray_loss`."""
 
     @staticmethod
-    def forward(ctx, rgb, opacity, target, background, ray_mask, extra, extra_weight: float, delta: float):
-        n_rays, device = rgb.shape[0], _wp.device_of(rgb)
+    def forward(ctx, rgb, opacity, target, background, ray_mask, extra, extra_weight: float, delta: float, k: int):
+        n_pixels, device = target.shape[0], _wp.device_of(rgb)
         mask = None if ray_mask is None else ray_mask.view(torch.uint8)
         sums = torch.zeros(4, dtype=torch.float32, device=rgb.device)
         loss = torch.empty((), dtype=torch.float32, device=rgb.device)
         mse = torch.empty((), dtype=torch.float32, device=rgb.device)
-        items = -(-n_rays // L.RAYS_PER_THREAD)
+        items = -(-n_pixels // L.RAYS_PER_THREAD)
         _wp.launch(L.ray_loss_sums, items,
-                   [n_rays, items, rgb, opacity, background, target, int(mask is not None), mask,
+                   [n_pixels, k, items, rgb, opacity, background, target, int(mask is not None), mask,
                     int(extra is not None), extra, delta, sums],
                    device, align=items)  # one CPU thread: the sums are atomics
         _wp.launch(L.ray_loss_finish, 1, [extra_weight, sums, loss.view(1), mse.view(1)], device)
         ctx.save_for_backward(rgb, opacity, target, background, mask, sums)
-        ctx.extra_weight, ctx.delta, ctx.has_extra = extra_weight, delta, extra is not None
+        ctx.extra_weight, ctx.delta, ctx.has_extra, ctx.k = extra_weight, delta, extra is not None, k
         ctx.mark_non_differentiable(mse)
         ctx.set_materialize_grads(False)  # no zeros for mse's gradient, which is never used
         return loss, mse
@@ -112,31 +112,36 @@ class _RayLoss(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_loss, _grad_mse):
         if grad_loss is None:
-            return None, None, None, None, None, None, None, None
+            return None, None, None, None, None, None, None, None, None
         rgb, opacity, target, background, mask, sums = ctx.saved_tensors
         grad_rgb, grad_opacity = torch.empty_like(rgb), torch.empty_like(opacity)
         grad_extra = torch.empty_like(opacity) if ctx.has_extra else None
         _wp.launch(L.ray_loss_backward, rgb.shape[0],
-                   [rgb, opacity, background, target, int(mask is not None), mask, int(ctx.has_extra),
+                   [ctx.k, rgb, opacity, background, target, int(mask is not None), mask, int(ctx.has_extra),
                     ctx.delta, ctx.extra_weight, sums, grad_loss.float().reshape(1), grad_rgb, grad_opacity,
                     grad_extra],
                    _wp.device_of(rgb))
-        return grad_rgb, grad_opacity, None, None, None, grad_extra, None, None
+        return grad_rgb, grad_opacity, None, None, None, grad_extra, None, None, None
 
 
 def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, background: torch.Tensor,
              ray_mask: torch.Tensor | None = None, extra: torch.Tensor | None = None, extra_weight: float = 0.0,
-             huber_delta: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+             huber_delta: float | None = None, rays_per_pixel: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
     """The photometric loss of rays rendered without a background (``render_rays(...,
     background=None)``), blended over ``background`` here, with an optional per-ray term,
-    averaged over the rays that ``ray_mask`` keeps, in one launch forward and one backward.
+    averaged over the pixels that ``ray_mask`` keeps, in one launch forward and one backward.
+    A pixel p is the mean of its ``rays_per_pixel`` = K rays (rows pK ... pK + K − 1; K = 1:
+    one ray per pixel), e.g. the sub-pixel rays of :func:`ngp_warp.batch.sample_pixels`.
 
     .. math::
 
-        e_r = c_r + b_r (1 - O_r) - \\hat c_r, \\qquad
-        \\mathrm{loss} = \\frac{\\sum_r m_r \\left(\\tfrac13 \\sum_k \\ell(e_{rk}) + \\lambda x_r\\right)}
-                              {\\max(1, \\sum_r m_r)}, \\qquad
-        \\mathrm{mse} = \\frac{\\sum_r m_r \\tfrac13 \\lVert e_r \\rVert^2}{\\max(1, \\sum_r m_r)}
+        c_p = \\tfrac1K \\sum_{r \\in p} c_r, \\quad O_p = \\tfrac1K \\sum_{r \\in p} O_r, \\quad
+        x_p = \\tfrac1K \\sum_{r \\in p} x_r, \\quad m_p = \\min_{r \\in p} m_r, \\quad
+        e_p = c_p + b_p (1 - O_p) - \\hat c_p,
+
+        \\mathrm{loss} = \\frac{\\sum_p m_p \\left(\\tfrac13 \\sum_k \\ell(e_{pk}) + \\lambda x_p\\right)}
+                              {\\max(1, \\sum_p m_p)}, \\qquad
+        \\mathrm{mse} = \\frac{\\sum_p m_p \\tfrac13 \\lVert e_p \\rVert^2}{\\max(1, \\sum_p m_p)}
 
     with :math:`\\ell(e) = e^2`, or Huber's :math:`\\tfrac12 e^2` for :math:`|e| < \\delta` and
     :math:`\\delta (|e| - \\delta / 2)` beyond.
@@ -144,13 +149,14 @@ def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, bac
     Args:
         rgb: [N, 3] float32 colour without background :math:`c_r` (differentiable).
         opacity: [N] float32 :math:`O_r` (differentiable).
-        target: [N, 3] float32 pixel colours :math:`\\hat c_r`, already over ``background``
+        target: [N / K, 3] float32 pixel colours :math:`\\hat c_p`, already over ``background``
             (no gradient).
-        background: [N, 3] float32 per-ray background :math:`b_r` (no gradient).
+        background: [N / K, 3] float32 per-pixel background :math:`b_p` (no gradient).
         ray_mask: optional [N] bool :math:`m_r` (e.g. ``render_rays``'s ``ray_mask``); None: all.
         extra: optional [N] float32 per-ray term :math:`x_r` (differentiable), e.g. the
             :func:`distortion_loss_packed` of the rays, weighted by ``extra_weight`` :math:`\\lambda`.
         huber_delta: None for the squared error, else Huber's :math:`\\delta > 0`.
+        rays_per_pixel: K ≥ 1, dividing N.
 
     Returns:
         (loss, mse): 0-dim float32 tensors on the rays' device; only ``loss`` has a gradient.
@@ -158,8 +164,12 @@ def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, bac
     if not isinstance(rgb, torch.Tensor) or rgb.dim() != 2 or rgb.shape[1] != 3:
         raise ValueError(f"rgb must be [N, 3], got {getattr(rgb, 'shape', type(rgb).__name__)}")
     n, dev = rgb.shape[0], rgb.device
+    if not (isinstance(rays_per_pixel, int) and rays_per_pixel >= 1 and n % rays_per_pixel == 0):
+        raise ValueError(f"rays_per_pixel must be an integer ≥ 1 dividing the {n} rays, got {rays_per_pixel!r}")
+    pixels = n // rays_per_pixel
     expected = {"rgb": (rgb, (n, 3), torch.float32), "opacity": (opacity, (n,), torch.float32),
-                "target": (target, (n, 3), torch.float32), "background": (background, (n, 3), torch.float32)}
+                "target": (target, (pixels, 3), torch.float32),
+                "background": (background, (pixels, 3), torch.float32)}
     if ray_mask is not None:
         expected["ray_mask"] = (ray_mask, (n,), torch.bool)
     if extra is not None:
@@ -178,4 +188,4 @@ def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, bac
     return _RayLoss.apply(rgb.contiguous(), opacity.contiguous(), target.contiguous(), background.contiguous(),
                           None if ray_mask is None else ray_mask.contiguous(),
                           None if extra is None else extra.contiguous(), float(extra_weight),
-                          0.0 if huber_delta is None else float(huber_delta))
+                          0.0 if huber_delta is None else float(huber_delta), rays_per_pixel)

@@ -327,8 +327,9 @@ class Trainer:
         )
 
     def sample_batch(self, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Random pixels across all training images → (rays_o, rays_d, target rgb, background),
-        drawn in one launch from a seed that mixes the config's seed with the step count."""
+        """About ``n`` rays through random pixels across all training images → (rays_o, rays_d
+        [n, 3], target rgb and background [n / supersample², 3] per pixel), drawn in one launch
+        from a seed that mixes the config's seed with the step count."""
         seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B) & 0x7FFFFFFF
         sub = self.config.supersample
         b = sample_pixels(self.train_split, max(1, n // (sub * sub)), seed, sub)
@@ -355,15 +356,10 @@ class Trainer:
             if weight > 0 and out["n_samples"] > 0:
                 dist = distortion_loss_packed(out["weights"], out["t_starts"], out["t_ends"], out["ray_offsets"])
             # rays dropped for lack of room in the sample buffer (ray_mask) are left out
-            rgb, opacity, mask = out["rgb"], out["opacity"], out.get("ray_mask")
-            k = self.config.supersample ** 2
-            if k > 1:  # a pixel is the mean of its k sub-rays (kept only if all of them are)
-                rgb, opacity = rgb.view(-1, k, 3).mean(1), opacity.view(-1, k).mean(1)
-                target, background = target[::k].contiguous(), background[::k].contiguous()
-                mask = None if mask is None else mask.view(-1, k).all(1)
-                dist = None if dist is None else dist.view(-1, k).mean(1)
-            loss, mse = ray_loss(rgb, opacity, target, background, mask, dist, weight,
-                                 huber_delta=0.1 if self.config.loss == "huber" else None)
+            # a pixel is the mean of its sub-rays, kept only if all of them are
+            loss, mse = ray_loss(out["rgb"], out["opacity"], target, background, out.get("ray_mask"), dist, weight,
+                                 huber_delta=0.1 if self.config.loss == "huber" else None,
+                                 rays_per_pixel=self.config.supersample ** 2)
             for p in self._params:  # what zero_grad(set_to_none=True) does, at a 20th of its host time
                 p.grad = None
             if out["n_samples"] > 0:

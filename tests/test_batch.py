@@ -74,11 +74,13 @@ def test_sub_pixel_rays_share_their_pixel_and_sit_on_a_grid(sub):
     split = random_split(distortion=True)
     b = sample_pixels(split, 500, seed=3, sub=sub)
     k = sub * sub
-    assert b.rays_d.shape == (500 * k, 3)
-    for t in (b.pixels, b.target, b.background):  # a pixel's sub-rays agree
-        assert torch.equal(t.view(500, k, 3), t[::k, None].expand(500, k, 3))
+    assert b.rays_d.shape == b.rays_o.shape == (500 * k, 3)
+    assert b.target.shape == b.background.shape == b.pixels.shape == (500, 3)  # one row per pixel
+    one = sample_pixels(split, 500, seed=3)  # the same pixels, colours and backgrounds as one ray each
+    for ours, centred in zip((b.pixels, b.target, b.background), (one.pixels, one.target, one.background)):
+        assert torch.equal(ours, centred)
     assert b.background.std() > 0.2
-    img, px, py = b.pixels.long().unbind(-1)
+    img, px, py = b.pixels.long().repeat_interleave(k, 0).unbind(-1)
     grid = (torch.arange(sub) + 0.5) / sub - 0.5  # offsets from the pixel centre, x fastest
     dx, dy = grid.repeat(sub).repeat(500), grid.repeat_interleave(sub).repeat(500)
     rays_o, rays_d = generate_rays(split.c2w[img], split.intrinsics[img], split.distortion[img], px + dx, py + dy)

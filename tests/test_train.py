@@ -298,8 +298,8 @@ def test_distortion_weight_adds_the_distortion_loss(tiny_scene):
 def test_supersampled_training_fits_pixels_as_means_of_sub_rays(tiny_scene):
     cfg = apply_overrides(tiny_config(300), ["supersample=2"])
     trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
-    batch = trainer.sample_batch(1000)[0]
-    assert batch.shape == (1000, 3)  # 250 pixels, four sub-rays each
+    rays_o, rays_d, target, background = trainer.sample_batch(1000)
+    assert rays_o.shape == rays_d.shape == (1000, 3) and target.shape == background.shape == (250, 3)
     before = mean_psnr(trainer)
     trainer.train(show_progress=False)
     assert mean_psnr(trainer) > before + 8.0

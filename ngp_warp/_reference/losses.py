@@ -18,9 +18,13 @@ def distortion_loss_ref(weights, t_starts, t_ends, ray_indices, n_rays: int) -> 
 
 
 def ray_loss_ref(rgb, opacity, target, background, ray_mask=None, extra=None, extra_weight: float = 0.0,
-                 huber_delta: float | None = None):
+                 huber_delta: float | None = None, rays_per_pixel: int = 1):
     """(loss, mse) of :func:`ngp_warp.losses.ray_loss` in float64 torch (differentiable)."""
-    e = rgb.double() + background.double() * (1 - opacity.double())[:, None] - target.double()
+    k = rays_per_pixel
+    rgb, opacity = rgb.double().view(-1, k, 3).mean(1), opacity.double().view(-1, k).mean(1)
+    extra = None if extra is None else extra.double().view(-1, k).mean(1)
+    ray_mask = None if ray_mask is None else ray_mask.view(-1, k).all(1)
+    e = rgb + background.double() * (1 - opacity)[:, None] - target.double()
     if huber_delta is None:
         per_channel = e * e
     else:
