@@ -68,8 +68,11 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
     cfg_dict = {"supersample": 1, **state["train_config"]}  # trained before sub-rays: one ray per pixel
     try:
         cfg = TrainConfig(**{**cfg_dict, "field": FieldConfig(**cfg_dict["field"])})
+        cfg.check()
     except TypeError as e:  # a setting this version does not have
         raise CheckpointError(f"{path}: written by another ngp-warp version ({e})") from None
+    except ValueError as e:  # a setting this version does not accept
+        raise CheckpointError(f"{path}: {e}") from None
     trainer = Trainer(scene, cfg, device=device)
     trainer.field.load_state_dict(state["field"])
     trainer.grid.load_state_dict(state["grid"])

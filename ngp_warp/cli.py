@@ -90,15 +90,13 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
         scene_path, downscale = Path(record["path"]), record["downscale"]  # what the run trained on
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
-        try:
-            trainer = Trainer(scene, config, device=device)
-        except ValueError as e:  # a field size the encoding rejects
-            raise UserError(f"--set: {e}") from None
+        trainer = Trainer(scene, config, device=device)
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
           f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "
           f"level {trainer.config.field.finest_resolution:g} cells, table 2^{trainer.config.field.log2_hashmap_size} "
-          f"per level, distortion loss weight {trainer.config.distortion_weight:g}", file=sys.stderr)
+          f"per level, distortion loss weight {trainer.config.distortion_weight:g}, "
+          f"{trainer.config.supersample}x{trainer.config.supersample} rays per pixel", file=sys.stderr)
     if scene.test_is_heldout:
         print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
               file=sys.stderr)

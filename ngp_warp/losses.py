@@ -164,7 +164,7 @@ def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, bac
     if not isinstance(rgb, torch.Tensor) or rgb.dim() != 2 or rgb.shape[1] != 3:
         raise ValueError(f"rgb must be [N, 3], got {getattr(rgb, 'shape', type(rgb).__name__)}")
     n, dev = rgb.shape[0], rgb.device
-    if not (isinstance(rays_per_pixel, int) and rays_per_pixel >= 1 and n % rays_per_pixel == 0):
+    if not (type(rays_per_pixel) is int and rays_per_pixel >= 1 and n % rays_per_pixel == 0):
         raise ValueError(f"rays_per_pixel must be an integer ≥ 1 dividing the {n} rays, got {rays_per_pixel!r}")
     pixels = n // rays_per_pixel
     expected = {"rgb": (rgb, (n, 3), torch.float32), "opacity": (opacity, (n,), torch.float32),

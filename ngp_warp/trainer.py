@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ngp_warp._checks import check_numbers
 from ngp_warp.batch import sample_pixels
 from ngp_warp.data import Scene, Split, generate_rays
 from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, INSTANT_NGP_LOG2_HASHMAP_SIZE, FieldConfig, NGPField
@@ -55,22 +56,19 @@ class TrainConfig:
 
     def check(self) -> None:
         """Raise ValueError naming the first setting outside its range (None is left to the
-        device). The field's sizes are checked where the field is built."""
+        device), the field's sizes included."""
         choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4)}
         for name, allowed in choices.items():
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {getattr(self, name)!r}")
-        for name in ("steps", "seconds", "target_samples", "initial_rays", "max_rays", "lr", "grid_resolution",
-                     "steps_per_diagonal"):
             value = getattr(self, name)
-            if value is not None and not value > 0:
-                raise ValueError(f"{name} must be > 0, got {value!r}")
-        for name in ("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"):
-            value = getattr(self, name)
-            if value is not None and not value >= 0:
-                raise ValueError(f"{name} must be ≥ 0, got {value!r}")
+            if value not in allowed or type(value) not in (str, int, type(None)):
+                raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {value!r}")
+        check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
+                                     "steps_per_diagonal"),
+                       positive=("seconds", "lr"),
+                       non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"))
         if not 0.0 <= self.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
+        self.field.check()
 
     def budget(self) -> tuple[int | None, float | None]:
         if self.steps is None and self.seconds is None:
@@ -327,9 +325,10 @@ class Trainer:
         )
 
     def sample_batch(self, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """About ``n`` rays through random pixels across all training images → (rays_o, rays_d
-        [n, 3], target rgb and background [n / supersample², 3] per pixel), drawn in one launch
-        from a seed that mixes the config's seed with the step count."""
+        """Rays through random pixels across all training images → (rays_o, rays_d [p k, 3],
+        target rgb and background [p, 3] per pixel) for p = max(1, n div k) pixels of k =
+        supersample² rays each, drawn in one launch from a seed that mixes the config's seed
+        with the step count."""
         seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B) & 0x7FFFFFFF
         sub = self.config.supersample
         b = sample_pixels(self.train_split, max(1, n // (sub * sub)), seed, sub)
@@ -373,7 +372,7 @@ class Trainer:
                     torch._foreach_lerp_(self._lerped[0], self._lerped[1], 1.0 - decay)
         n_samples = self._samples_in_use(out)
         marched = out["n_marched"] if "n_marched" in out else n_samples  # host ints: no sync
-        stats = {"loss": loss.detach(), "mse": mse, "rays": self.n_rays, "samples": n_samples, "marched": marched}
+        stats = {"loss": loss.detach(), "mse": mse, "rays": rays_o.shape[0], "samples": n_samples, "marched": marched}
         # Hold the sample count: scale the ray count by target / actual (smoothed, clamped).
         ratio = self.target_samples / max(n_samples, 1)
         new = self.n_rays * min(max(ratio, 0.5), 2.0) ** 0.5
@@ -475,14 +474,17 @@ class Trainer:
         shifts = [((a + 0.5) / sub - 0.5, (b + 0.5) / sub - 0.5) for b in range(sub) for a in range(sub)]
         for lo in range(0, n, chunk):
             hi = min(n, lo + chunk)
-            outs = []
+            sums = dict.fromkeys(parts, 0.0)  # running sums: memory stays one render's whatever sub and spp
             for dx, dy in shifts:
                 rays_o, rays_d = generate_rays(c2w[lo:hi], intr[lo:hi], None if dist is None else dist[lo:hi],
                                                px[lo:hi] + dx, py[lo:hi] + dy)
-                with self._mlp_precision():
-                    outs += [self.render(rays_o, rays_d, bg, stratified=spp > 1) for _ in range(spp)]
+                for _ in range(spp):
+                    with self._mlp_precision():
+                        out = self.render(rays_o, rays_d, bg, stratified=spp > 1)
+                    for k in parts:
+                        sums[k] = sums[k] + out[k].float()
             for k in parts:
-                parts[k].append(sum(out[k].float() for out in outs) / len(outs))
+                parts[k].append(sums[k] / (len(shifts) * spp))
         return {
             "rgb": torch.cat(parts["rgb"]).reshape(height, width, 3).clamp(0, 1),
             "depth": torch.cat(parts["depth"]).reshape(height, width),

@@ -60,10 +60,11 @@ def test_rejects_bad_counts(bad):
 
 
 @pytest.mark.cuda
-def test_cuda_draws_what_the_cpu_draws():
+@pytest.mark.parametrize("sub", [1, 2, 3])
+def test_cuda_draws_what_the_cpu_draws(sub):
     split = random_split(distortion=True)
-    cpu = sample_pixels(split, 5000, seed=3)
-    gpu = sample_pixels(split.to("cuda"), 5000, seed=3)
+    cpu = sample_pixels(split, 5000, seed=3, sub=sub)
+    gpu = sample_pixels(split.to("cuda"), 5000, seed=3, sub=sub)
     assert torch.equal(gpu.pixels.cpu(), cpu.pixels)
     for a, b in zip(gpu[:4], cpu[:4]):
         torch.testing.assert_close(a.cpu(), b, rtol=0, atol=1e-5)

@@ -186,6 +186,29 @@ def test_checkpoint_from_another_version_is_a_one_line_error(tiny_scene, tmp_pat
         load_trainer(tmp_path / "c.pt", device="cpu")
 
 
+def test_checkpoint_with_a_setting_out_of_range_is_a_one_line_error(tiny_scene, tmp_path):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    state = torch.load(tmp_path / "c.pt", weights_only=False)
+    state["train_config"]["lr"] = -1.0
+    torch.save(state, tmp_path / "c.pt")
+    with pytest.raises(CheckpointError, match="lr must be a number > 0"):
+        load_trainer(tmp_path / "c.pt", device="cpu")
+
+
+def test_checkpoint_from_before_sub_rays_loads_as_one_ray_per_pixel(tiny_scene, tmp_path, monkeypatch):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    state = torch.load(tmp_path / "c.pt", weights_only=False)
+    del state["train_config"]["supersample"]
+    torch.save(state, tmp_path / "c.pt")
+    # resolve unset settings as CUDA would (2×2 sub-rays), on the CPU
+    monkeypatch.setattr("ngp_warp.trainer.device_defaults", lambda cfg, _: device_defaults(cfg, "cuda"))
+    assert Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu").config.supersample == 2
+    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
+    assert loaded.config.supersample == 1
+
+
 @pytest.mark.cuda
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_cuda_graph_field_matches_the_eager_field(tiny_scene, precision):
@@ -272,6 +295,15 @@ def test_config_check_names_the_setting_out_of_range(setting):
     TrainConfig().check()  # the defaults, None included, pass
 
 
+@pytest.mark.parametrize("bad", [dict(supersample=2.0), dict(supersample=True), dict(steps=2.5), dict(lr=True),
+                                 dict(field=FieldConfig(n_levels=0)), dict(field=FieldConfig(log2_hashmap_size=31)),
+                                 dict(field=FieldConfig(n_features_per_level=3)),
+                                 dict(field=FieldConfig(finest_resolution=-1.0))])
+def test_config_check_refuses_wrong_types_and_field_sizes(bad):
+    with pytest.raises(ValueError, match="must be"):
+        TrainConfig(**bad).check()
+
+
 @pytest.mark.parametrize("prune", [True, False])
 def test_step_reports_marched_and_trained_sample_counts(tiny_scene, prune):
     cfg = tiny_config(30)
@@ -304,10 +336,18 @@ def test_supersampled_training_fits_pixels_as_means_of_sub_rays(tiny_scene):
     trainer.train(show_progress=False)
     assert mean_psnr(trainer) > before + 8.0
     camera = trainer.scene.test
-    one = trainer.render_image(camera.c2w[0], camera.intrinsics[0], camera.width, camera.height)
+    c2w, intr, w, h = camera.c2w[0], camera.intrinsics[0], camera.width, camera.height
+    mean_of_four = trainer.render_image(c2w, intr, w, h)
     trainer.config = dataclasses.replace(trainer.config, supersample=1)
-    centre = trainer.render_image(camera.c2w[0], camera.intrinsics[0], camera.width, camera.height)
-    assert 0 < (one["rgb"] - centre["rgb"]).abs().mean() < 0.05  # the mean of four sub-pixel renders
+    centre = trainer.render_image(c2w, intr, w, h)
+    assert (mean_of_four["rgb"] - centre["rgb"]).abs().mean() > 1e-3
+    shifted = []  # a render through (px + 1/2 + dx, py + 1/2 + dy) is one with the principal point moved by −(dx, dy)
+    for dx, dy in [(-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)]:
+        moved = intr - torch.tensor([0.0, 0.0, dx, dy], dtype=intr.dtype)
+        shifted.append(trainer.render_image(c2w, moved, w, h))
+    for key in ("rgb", "opacity", "depth"):
+        want = sum(r[key] for r in shifted) / 4
+        torch.testing.assert_close(mean_of_four[key], want.clamp(0, 1) if key == "rgb" else want, atol=1e-5, rtol=1e-5)
     with pytest.raises(ValueError, match="supersample"):
         Trainer(load_scene(tiny_scene), apply_overrides(tiny_config(1), ["supersample=0"]), device="cpu")
     scene = load_scene(tiny_scene)
