@@ -35,17 +35,28 @@ def channel_loss_grad(e: float, delta: float) -> float:
 
 
 # A pixel p is the mean of its k rays r = p k ... p k + k − 1 (k = 1: one ray per pixel):
+#   mean_r v_r, for per-ray scalars and colours
+@wp.func
+def pixel_mean(p: int, k: int, values: wp.array(dtype=float)) -> float:
+    total = float(0.0)
+    for r in range(p * k, p * k + k):
+        total += values[r]
+    return total / float(k)
+
+
+@wp.func
+def pixel_mean(p: int, k: int, values: wp.array(dtype=wp.vec3)) -> wp.vec3:
+    total = wp.vec3(0.0)
+    for r in range(p * k, p * k + k):
+        total += values[r]
+    return total / float(k)
+
+
 #   e_p = mean_r rgb_r + b_p (1 − mean_r o_r) − target_p
 @wp.func
 def blended_error(p: int, k: int, rgb: wp.array(dtype=wp.vec3), opacity: wp.array(dtype=float),
                   background: wp.array(dtype=wp.vec3), target: wp.array(dtype=wp.vec3)) -> wp.vec3:
-    c = wp.vec3(0.0)
-    o = float(0.0)
-    for r in range(p * k, p * k + k):
-        c += rgb[r]
-        o += opacity[r]
-    inv = 1.0 / float(k)
-    return c * inv + background[p] * (1.0 - o * inv) - target[p]
+    return pixel_mean(p, k, rgb) + background[p] * (1.0 - pixel_mean(p, k, opacity)) - target[p]
 
 
 # m_p: 1 when the mask keeps all of the pixel's rays (no mask: 1)
@@ -89,10 +100,7 @@ def ray_loss_sums(
         loss += m * (channel_loss(e[0], delta) + channel_loss(e[1], delta) + channel_loss(e[2], delta)) / 3.0
         squared += m * wp.dot(e, e) / 3.0
         if has_extra != 0:
-            x = float(0.0)
-            for r in range(p * k, p * k + k):
-                x += extra[r]
-            extras += m * x / float(k)
+            extras += m * pixel_mean(p, k, extra)
         count += m
     wp.atomic_add(sums, 0, loss)
     wp.atomic_add(sums, 1, squared)
