@@ -15,6 +15,8 @@ _FAR = wp.constant(1.0e30)
 # Loop iterations per ray never exceed this (ends degenerate rays, e.g. near-zero directions
 # whose t range float32 steps cannot resolve); sane rays need far fewer (~1024·2^levels).
 _MAX_ITERS = wp.constant(1 << 24)
+# A step mask with every bit set means "march again" (see march_rays).
+_REMARCH = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 
 
 @wp.func
@@ -81,6 +83,23 @@ def empty_mip(mips: wp.array(dtype=wp.uint8), base: int, ijk: wp.vec3i, res: int
     return m
 
 
+@wp.func
+def write_sample(
+    j: int, r: int, o: wp.vec3, d: wp.vec3, t: float, t_end: float,
+    ray_indices: wp.array(dtype=wp.int64),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    positions: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+):
+    """Packed sample j: the interval [t, t_end] of ray r and its midpoint o + d (t + t_end) / 2."""
+    ray_indices[j] = wp.int64(r)
+    t_starts[j] = t
+    t_ends[j] = t_end
+    positions[j] = o + d * (0.5 * (t + t_end))
+    directions[j] = d
+
+
 @wp.struct
 class MarchConfig:
     """The march's settings: grid (res, levels, n_mips, mip_cells), ray interval and steps, the
@@ -118,6 +137,10 @@ class MarchConfig:
 # Between the passes seg_offsets[1:] becomes the inclusive prefix sum of the (capped) counts.
 # fill = 1: the segment's first seg_offsets[i+1] − seg_offsets[i] samples go to seg_offsets[i]
 # onwards, and ray_offsets[r] = seg_offsets[r·n_seg] (ray_offsets[n_rays] = seg_offsets[-1]).
+# Step masks (fixed steps, when the host passes step_masks): the count pass also stores bit
+# k − j·seg_steps of step_masks[i] for every kept step k, and the fill pass writes the samples
+# from those bits instead of marching again; a segment with a kept step past bit 63 stores
+# _REMARCH and is marched again (the last segment of a ray longer than planned).
 # At most 64 registers: twice the resident threads of the unconstrained build (96), so more rays'
 # cell lookups are in flight at once.
 @wp.kernel(cuda_max_registers=64)
@@ -139,6 +162,7 @@ def march_rays(
     t_ends: wp.array(dtype=float),
     positions: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
+    step_masks: wp.array(dtype=wp.uint64),
 ):
     res = cfg.res
     levels = cfg.levels
@@ -180,7 +204,25 @@ def march_rays(
             ray_offsets[r + 1] = int(seg_offsets[i + 1])
 
     n = int(0)
-    if t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0:
+    k_first = k
+    mask = wp.uint64(0)
+    masked = step_masks.shape[0] > 0
+    if masked and fill != 0:
+        mask = step_masks[i]
+    if t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0 and mask != _REMARCH and mask != wp.uint64(0):
+        t_s = t0
+        if stratified != 0:
+            state = wp.rand_init(seed, r)
+            t_s = t0 + wp.randf(state) * step
+        while mask != wp.uint64(0) and n < cap:
+            if (mask & wp.uint64(1)) != wp.uint64(0):
+                t = t_s + float(k) * step
+                write_sample(base + n, r, o, d, t, wp.min(t + step, t1),
+                             ray_indices, t_starts, t_ends, positions, directions)
+                n += 1
+            mask = mask >> wp.uint64(1)
+            k += 1
+    elif t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0 and not (masked and fill != 0 and mask == wp.uint64(0)):
         state = wp.rand_init(seed, r)
         dt = step_at(t0, step, cone, max_step)
         t_s = t0
@@ -219,12 +261,12 @@ def march_rays(
                 while k < k_stop and t < t1 and n < cap:
                     t_end = wp.min(t + dt, t1)
                     if fill != 0:
-                        j = base + n
-                        ray_indices[j] = wp.int64(r)
-                        t_starts[j] = t
-                        t_ends[j] = t_end
-                        positions[j] = o + d * (0.5 * (t + t_end))
-                        directions[j] = d
+                        write_sample(base + n, r, o, d, t, t_end, ray_indices, t_starts, t_ends, positions, directions)
+                    elif masked:
+                        if k - k_first < 64:
+                            mask = mask | (wp.uint64(1) << wp.uint64(k - k_first))
+                        else:
+                            mask = _REMARCH
                     n += 1
                     k += 1
                     if cone > 0.0:
@@ -248,5 +290,7 @@ def march_rays(
                     t = t_s + float(k) * dt
     if fill == 0:
         seg_counts[i] = n
+        if masked:
+            step_masks[i] = mask
         if i == 0:
             seg_offsets[0] = 0

@@ -222,7 +222,7 @@ def _parser() -> argparse.ArgumentParser:
         budget.add_argument("--seconds", type=_positive(float), help="training wall-clock budget in seconds")
         sp.add_argument("--downscale", type=_positive(int), default=1, help="shrink images by this integer factor")
         sp.add_argument("--seed", type=int, default=0)
-        sp.add_argument("--target-samples", type=_positive(int), help="samples per batch (default 2^17 CUDA, 2^15 CPU)")
+        sp.add_argument("--target-samples", type=_positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
                              "(repeatable; see ngp_warp.trainer.TrainConfig)")

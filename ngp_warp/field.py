@@ -31,13 +31,11 @@ INSTANT_NGP_LOG2_HASHMAP_SIZE = 19      # instant-ngp's table size per level, 2^
 @dataclass
 class FieldConfig:
     """Sizes of the NGP field (defaults: instant-ngp's NeRF configuration, except the finest
-    resolution, which by default follows the training images' resolution, and the table size,
-    which the Trainer picks by device)."""
+    resolution, which by default follows the training images' resolution)."""
 
     n_levels: int = 16
     n_features_per_level: int = 2
-    log2_hashmap_size: int | None = None    # None: the Trainer picks 21 on CUDA, 19 on the CPU;
-                                            # NGPField alone: 19
+    log2_hashmap_size: int = INSTANT_NGP_LOG2_HASHMAP_SIZE
     base_resolution: int = 16
     finest_resolution: float | None = None  # None: the Trainer matches the training pixels
                                             # (pixel_matched_resolution); NGPField alone: 2048
@@ -84,7 +82,8 @@ def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
     d = d.detach().float().contiguous()
     out = torch.empty(d.shape[0], 16, device=d.device, dtype=torch.float32)
     device = _wp.device_of(d)
-    _wp.launch(sh_kernels.sh_deg4, d.shape[0], [_wp.to_wp(d, dtype=wp.vec3), _wp.to_wp(out)], device)
+    _wp.launch(sh_kernels.sh_deg4, 4 * d.shape[0], [_wp.to_wp(d, dtype=wp.vec3), _wp.to_wp(out.view(-1, 4), dtype=wp.vec4)],
+               device)
     return out
 
 
@@ -116,7 +115,7 @@ class NGPField(nn.Module):
             n_input_dims=3,
             n_levels=cfg.n_levels,
             n_features_per_level=cfg.n_features_per_level,
-            log2_hashmap_size=cfg.log2_hashmap_size or INSTANT_NGP_LOG2_HASHMAP_SIZE,
+            log2_hashmap_size=cfg.log2_hashmap_size,
             base_resolution=cfg.base_resolution,
             desired_resolution=cfg.finest_resolution or INSTANT_NGP_FINEST_RESOLUTION,
         )
@@ -127,17 +126,35 @@ class NGPField(nn.Module):
         """MLP weights (the ones that get weight decay)."""
         return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters())
 
-    def _geometry(self, positions: torch.Tensor) -> torch.Tensor:
+    def _features(self, positions: torch.Tensor) -> torch.Tensor:
         lo, hi = self.aabb[:3], self.aabb[3:]
-        x = ((positions - lo) / (hi - lo)).contiguous()
-        return self.density_mlp(self.encoding(x))
+        return self.encoding(((positions - lo) / (hi - lo)).contiguous())
+
+    def _geometry(self, positions: torch.Tensor) -> torch.Tensor:
+        return self.density_mlp(self._features(positions))
+
+    def _log_density(self, positions: torch.Tensor) -> torch.Tensor:
+        """The density MLP's first output [N, 1], without autograd: each hidden layer's ReLU runs
+        in its matmul's epilogue (``torch._addmm_activation``, cuBLASLt on CUDA), and the last
+        layer computes only the one output used. In the autocast dtype when autocast is on."""
+        h = self._features(positions)
+        dtype = torch.get_autocast_dtype("cuda") if h.is_cuda and torch.is_autocast_enabled("cuda") else h.dtype
+        h = h.to(dtype)
+        layers = [m.weight.to(dtype) for m in self.density_mlp if isinstance(m, nn.Linear)]
+        for w in layers[:-1]:
+            h = torch._addmm_activation(h.new_zeros(w.shape[0]), h, w.t())
+        return torch.mm(h, layers[-1][:1].t())
 
     def _inside(self, positions: torch.Tensor) -> torch.Tensor:
         return ((positions >= self.aabb[:3]) & (positions <= self.aabb[3:])).all(-1)
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
-        """σ at positions [N, 3] float32 → [N] float32 (zero outside the box)."""
-        h = self._geometry(positions)
+        """σ at positions [N, 3] float32 → [N] float32 (zero outside the box). On CUDA without
+        autograd, through :meth:`_log_density`'s fused matmuls (equal up to matmul rounding)."""
+        if positions.is_cuda and not torch.is_grad_enabled():
+            h = self._log_density(positions)
+        else:
+            h = self._geometry(positions)
         return trunc_exp(h[:, 0].float()) * self._inside(positions)
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

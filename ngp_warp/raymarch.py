@@ -11,7 +11,8 @@ Each ray is clipped to the coarsest cascade's box and to ``[near, far]``, then s
 keeping the interval :math:`[t_k, \\min(t_k + \\Delta t_k, t_{far})]` when the cell (of the finest
 cascade containing it) of its midpoint is occupied, and jumping over empty cells (DDA).
 Samples are produced by count → prefix sum → fill; the only host synchronisation reads the
-total sample count to size the outputs. With fixed steps several threads march one ray, each
+total sample count to size the outputs. Segments of at most 64 fixed steps record their kept
+steps as a bit mask in the count, from which the fill writes the samples without marching. With fixed steps several threads march one ray, each
 over a segment of its steps (:class:`MarchSchedule`); the samples do not depend on the split.
 """
 
@@ -170,9 +171,11 @@ def ray_marching(
     seg_ints = torch.empty(2 * n_items + 1, dtype=torch.int32, device=dev)  # one allocation for both
     seg_counts, seg_offsets = seg_ints[:n_items], seg_ints[n_items:]
     offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=dev)
+    # Short fixed-step segments keep their kept steps as bit masks, so the fill need not march again.
+    masks = torch.empty(n_items, dtype=torch.int64, device=dev) if cone_angle == 0 and seg_steps <= 64 else None
     n_samples = 0
     if n_rays > 0:
-        _wp.launch(K.march_rays, n_items, [0, *common, seg_counts, seg_offsets, None, *[None] * 5], device)
+        _wp.launch(K.march_rays, n_items, [0, *common, seg_counts, seg_offsets, None, *[None] * 5, masks], device)
         if cap != _NO_CAP:  # keep each ray's first `cap` samples: cap the running count within the ray
             in_ray = torch.cumsum(seg_counts.view(n_rays, n_seg), 1, dtype=torch.int32).clamp_(max=cap)
             seg_counts = torch.diff(in_ray, dim=1, prepend=in_ray.new_zeros(n_rays, 1)).reshape(-1)
@@ -188,7 +191,7 @@ def ray_marching(
     if n_samples > 0:
         _wp.launch(
             K.march_rays, n_items,
-            [1, *common, None, seg_offsets, offsets, ray_indices, t_starts, t_ends, positions, directions],
+            [1, *common, None, seg_offsets, offsets, ray_indices, t_starts, t_ends, positions, directions, masks],
             device,
         )
     else:

@@ -13,7 +13,7 @@ import torch
 from ngp_warp._checks import check_numbers
 from ngp_warp.batch import sample_pixels
 from ngp_warp.data import Scene, Split, generate_rays
-from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, INSTANT_NGP_LOG2_HASHMAP_SIZE, FieldConfig, NGPField
+from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig, NGPField
 from ngp_warp.graphs import GraphedDensity
 from ngp_warp.losses import distortion_loss_packed, ray_loss
 from ngp_warp.occupancy import OccupancyGrid
@@ -28,7 +28,7 @@ class TrainConfig:
 
     steps: int | None = None            # stop after this many steps ...
     seconds: float | None = None        # ... or after this much training wall-clock
-    target_samples: int | None = None   # samples per batch to hold (2^17 CUDA, 2^15 CPU); with
+    target_samples: int | None = None   # samples per batch to hold (2^18 CUDA, 2^15 CPU); with
                                         # prune, samples that composite (the rows trained on)
     initial_rays: int = 1024
     max_rays: int = 1 << 18
@@ -50,8 +50,7 @@ class TrainConfig:
     supersample: int | None = None      # > 1: each training pixel is the mean of supersample² rays on
                                         # a sub-pixel grid (as the images were area-downsampled), and
                                         # renders average the same grid; None: 2 on CUDA, 1 on the CPU
-    distortion_weight: float | None = None  # weight of the mean distortion loss per ray (t in world
-                                        # units); None: 1e-3 on CUDA, 0 on the CPU (see device_defaults)
+    distortion_weight: float = 0.0      # weight of the mean distortion loss per ray (t in world units)
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def check(self) -> None:
@@ -142,24 +141,18 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1) -> float:
 
 
 def device_defaults(config: TrainConfig, device_type: str) -> TrainConfig:
-    """``config`` with the settings left to None that depend on the device filled in.
+    """``config`` with ``supersample`` filled in when left to None: 2×2 sub-rays per training
+    pixel on CUDA, one ray on the CPU.
 
-    On CUDA: 2×2 sub-rays per training pixel, a 2^21-entry table per level and a distortion loss
-    of weight 1e-3. On lego (H200, schedule over 300 s, 200 views, RESULTS.md) the sub-rays took
-    the 300 s PSNR from 34.75 to 36.61 dB. Before them the table and the distortion loss together
-    gave 34.59 / 35.01 / 34.89 dB at 15 / 60 / 300 s against 34.35 / 34.85 / 34.86 dB with
-    instant-ngp's 2^19 and no distortion, for 2.84 against 2.38 ms per step. On the CPU: one ray
-    per pixel (on the demo, 2×2 sub-rays gave 33.18 against 33.56 dB in 150 s on 2 cores), 2^19
-    and no distortion loss (their cost per step there is unmeasured against their gain).
+    On lego (H200, schedule over 300 s, 200 views, RESULTS.md) the sub-rays took the 300 s PSNR
+    from 34.75 to 36.61 dB. With them, session 8's 2^21-entry table and distortion loss no longer
+    helped (36.67–36.74 dB at 300 s with or without them, 25 views; NOTES entry 21), so the table
+    is instant-ngp's 2^19 and the distortion loss is off by default on both devices. On the CPU,
+    2×2 sub-rays gave 33.18 against 33.56 dB on the demo in 150 s on 2 cores.
     """
-    cuda = device_type == "cuda"
-    field_cfg = config.field
-    if field_cfg.log2_hashmap_size is None:
-        field_cfg = dataclasses.replace(field_cfg, log2_hashmap_size=21 if cuda else INSTANT_NGP_LOG2_HASHMAP_SIZE)
-    weight = config.distortion_weight
-    supersample = (2 if cuda else 1) if config.supersample is None else config.supersample
-    return dataclasses.replace(config, field=field_cfg, supersample=supersample,
-                               distortion_weight=(1e-3 if cuda else 0.0) if weight is None else weight)
+    if config.supersample is not None:
+        return config
+    return dataclasses.replace(config, supersample=2 if device_type == "cuda" else 1)
 
 
 def default_device() -> str:
@@ -212,7 +205,7 @@ class Trainer:
         # whole field box, which is aabb_scale times larger for instant-ngp scenes.
         box = scene.occupancy_aabb
         self.step_size = float((box[3:] - box[:3]).norm()) / cfg.steps_per_diagonal
-        self.target_samples = cfg.target_samples or (1 << 17 if self.device.type == "cuda" else 1 << 15)
+        self.target_samples = cfg.target_samples or (1 << 18 if self.device.type == "cuda" else 1 << 15)
         self.n_rays = cfg.initial_rays
         table = {"params": list(self.field.encoding.parameters()), "weight_decay": 0.0}
         mlp = {"params": self.field.mlp_parameters(), "weight_decay": cfg.weight_decay}

@@ -1,5 +1,6 @@
 import math
 
+import pytest
 import torch
 
 from ngp_warp._reference.field import spherical_harmonics_deg4_ref
@@ -58,3 +59,38 @@ def test_field_runs_under_autocast():
     assert sigma.dtype == torch.float32 and rgb.dtype == torch.float32
     (sigma.sum() + rgb.sum()).backward()
     assert field.density_mlp[0].weight.grad is not None and field.encoding.params.grad is not None
+
+
+def _small_field(device="cpu"):
+    cfg = FieldConfig(n_levels=4, log2_hashmap_size=12, finest_resolution=64.0, hidden=16)
+    field = NGPField(torch.tensor([-1.0, -1, -1, 1, 1, 1]), cfg).to(device)
+    torch.nn.init.uniform_(field.encoding.params, -1.0, 1.0)
+    return field
+
+
+def test_fused_log_density_matches_the_density_mlp():
+    """The no-grad density path (fused ReLU epilogues, one output column) equals the MLP's first
+    output, with some ReLUs active and some not."""
+    field = _small_field()
+    x = torch.rand(500, 3) * 2 - 1
+    with torch.no_grad():
+        want = field._geometry(x)[:, :1]
+        hidden = field.density_mlp[1](field.density_mlp[0](field._features(x)))
+        got = field._log_density(x)
+    assert got.shape == (500, 1) and 0.1 < (hidden > 0).float().mean() < 0.9
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.cuda
+def test_cuda_density_without_grad_matches_the_field():
+    field = _small_field("cuda")
+    x = torch.rand(4096, 3, device="cuda") * 2.2 - 1.1  # some outside the box
+    with torch.no_grad():
+        sigma = field(x, torch.nn.functional.normalize(torch.randn_like(x), dim=-1))[0]
+        fused = field.density(x)
+        torch.testing.assert_close(fused, sigma, rtol=1e-5, atol=1e-5)
+        with torch.autocast("cuda", dtype=torch.bfloat16):
+            sigma16 = field(x, x)[0]
+            fused16 = field.density(x)
+    assert (fused == 0).any() and fused16.dtype == torch.float32
+    torch.testing.assert_close(fused16, sigma16, rtol=0.05, atol=0.05)

@@ -178,7 +178,8 @@ def test_caps_keep_the_front_samples():
 def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels):
     """Short segments (several threads per ray, as on the GPU) give exactly the samples of one
     thread per ray, with jitter and caps, and for non-unit directions whose rays outlast the
-    step estimate (the last segment takes the rest)."""
+    step estimate (the last segment takes the rest). Segments of up to 64 steps fill from the
+    count pass's step masks; a last segment past bit 63 is marched again."""
     grid = random_grid(levels)
     rays_o, rays_d = random_rays(200, levels)
     rays_d[::3] *= 0.3
@@ -186,15 +187,22 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels):
              dict(step_size=0.02, max_samples_per_ray=9), dict(step_size=0.02, max_samples=3000)]
     for kw in calls:
         results = []
-        for schedule in (raymarch.MarchSchedule(10**9, 1), raymarch.MarchSchedule(7, 40)):
+        for schedule in (raymarch.MarchSchedule(10**9, 1), raymarch.MarchSchedule(7, 40), raymarch.MarchSchedule(40, 40)):
             monkeypatch.setitem(raymarch.SCHEDULES, "cpu", schedule)
+            n_seg, seg_steps = raymarch._segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"], 0.0)
+            assert (n_seg, seg_steps > 64) == (1, True) or (n_seg > 1 and seg_steps <= 64)  # masks in the split runs
             torch.manual_seed(3)
             results.append(ray_marching(rays_o, rays_d, grid, **kw))
-        one, split = results
-        n_seg, _ = raymarch._segments(raymarch.SCHEDULES["cpu"], grid, kw.get("near", 0.0), 1e10, kw["step_size"], 0.0)
-        assert n_seg > 10 and one.n_samples > 1000
-        for name in ("ray_offsets", "ray_indices", "t_starts", "t_ends", "positions", "directions"):
-            assert torch.equal(getattr(one, name), getattr(split, name)), (kw, name)
+        one = results[0]
+        assert one.n_samples > 1000
+        if "max_samples_per_ray" not in kw:  # some last segments keep a step past their mask's bit 63
+            s = 2.0 ** (levels - 1)
+            t0 = ray_box_ref(rays_o, rays_d, [-s] * 3, [s] * 3)[0].clamp(min=kw.get("near", 0.0))
+            k = (one.t_starts.double() - t0[one.ray_indices]) / kw["step_size"]
+            assert k.max() > (n_seg - 1) * seg_steps + 64
+        for split in results[1:]:
+            for name in ("ray_offsets", "ray_indices", "t_starts", "t_ends", "positions", "directions"):
+                assert torch.equal(getattr(one, name), getattr(split, name)), (kw, name)
 
 
 def test_strided_rays_match_contiguous():
