@@ -65,6 +65,8 @@ class TrainConfig:
                                      "steps_per_diagonal"),
                        positive=("seconds", "lr"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"))
+        if self.distortion_weight is None:
+            raise ValueError("distortion_weight must be a number ≥ 0, got None")
         if not 0.0 <= self.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
         self.field.check()

@@ -294,7 +294,8 @@ def test_config_check_names_the_setting_out_of_range(setting):
 @pytest.mark.parametrize("bad", [dict(supersample=2.0), dict(supersample=True), dict(steps=2.5), dict(lr=True),
                                  dict(field=FieldConfig(n_levels=0)), dict(field=FieldConfig(log2_hashmap_size=31)),
                                  dict(field=FieldConfig(n_features_per_level=3)),
-                                 dict(field=FieldConfig(finest_resolution=-1.0))])
+                                 dict(field=FieldConfig(finest_resolution=-1.0)), dict(distortion_weight=None),
+                                 dict(field=FieldConfig(log2_hashmap_size=None))])
 def test_config_check_refuses_wrong_types_and_field_sizes(bad):
     with pytest.raises(ValueError, match="must be"):
         TrainConfig(**bad).check()
