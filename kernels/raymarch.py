@@ -209,7 +209,8 @@ def march_rays(
     masked = step_masks.shape[0] > 0
     if masked and fill != 0:
         mask = step_masks[i]
-    if t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0 and mask != _REMARCH and mask != wp.uint64(0):
+    live = t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0
+    if live and masked and fill != 0 and mask != _REMARCH:
         t_s = t0
         if stratified != 0:
             state = wp.rand_init(seed, r)
@@ -222,7 +223,7 @@ def march_rays(
                 n += 1
             mask = mask >> wp.uint64(1)
             k += 1
-    elif t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0 and not (masked and fill != 0 and mask == wp.uint64(0)):
+    elif live:
         state = wp.rand_init(seed, r)
         dt = step_at(t0, step, cone, max_step)
         t_s = t0

@@ -3,12 +3,13 @@
 from numbers import Integral, Real
 
 
-def check_numbers(config, counts=(), positive=(), non_negative=()) -> None:
-    """ValueError for the first of ``config``'s settings that is not None and not: an int ≥ 1
-    (``counts``), a number > 0 (``positive``), a number ≥ 0 (``non_negative``)."""
+def check_numbers(config, counts=(), positive=(), non_negative=(), optional=()) -> None:
+    """ValueError for the first of ``config``'s settings that is not: an int ≥ 1 (``counts``), a
+    number > 0 (``positive``), a number ≥ 0 (``non_negative``). Only the settings named in
+    ``optional`` may be None."""
     for name in (*counts, *positive, *non_negative):
         value = getattr(config, name)
-        if value is None:
+        if value is None and name in optional:
             continue
         if name in counts:
             if isinstance(value, bool) or not isinstance(value, Integral) or value < 1:

@@ -46,11 +46,11 @@ class FieldConfig:
         """Raise ValueError naming the first size outside its range (a None finest resolution is
         left to the Trainer)."""
         check_numbers(self, counts=("n_levels", "base_resolution", "hidden", "geo_features", "log2_hashmap_size"),
-                      positive=("finest_resolution",))
+                      positive=("finest_resolution",), optional=("finest_resolution",))
         if self.n_features_per_level not in (1, 2, 4, 8) or type(self.n_features_per_level) is not int:
             raise ValueError(f"n_features_per_level must be 1, 2, 4 or 8, got {self.n_features_per_level!r}")
-        if self.log2_hashmap_size is None or self.log2_hashmap_size > 30:
-            raise ValueError(f"log2_hashmap_size must be an integer from 1 to 30, got {self.log2_hashmap_size}")
+        if self.log2_hashmap_size > 30:
+            raise ValueError(f"log2_hashmap_size must be at most 30, got {self.log2_hashmap_size}")
 
 
 class _TruncExp(torch.autograd.Function):

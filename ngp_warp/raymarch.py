@@ -11,9 +11,10 @@ Each ray is clipped to the coarsest cascade's box and to ``[near, far]``, then s
 keeping the interval :math:`[t_k, \\min(t_k + \\Delta t_k, t_{far})]` when the cell (of the finest
 cascade containing it) of its midpoint is occupied, and jumping over empty cells (DDA).
 Samples are produced by count → prefix sum → fill; the only host synchronisation reads the
-total sample count to size the outputs. Segments of at most 64 fixed steps record their kept
-steps as a bit mask in the count, from which the fill writes the samples without marching. With fixed steps several threads march one ray, each
+total sample count to size the outputs. With fixed steps several threads march one ray, each
 over a segment of its steps (:class:`MarchSchedule`); the samples do not depend on the split.
+Segments of at most 64 fixed steps record their kept steps as a bit mask in the count, from
+which the fill writes the samples without marching again.
 """
 
 from __future__ import annotations

@@ -64,9 +64,8 @@ class TrainConfig:
         check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
                                      "steps_per_diagonal"),
                        positive=("seconds", "lr"),
-                       non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"))
-        if self.distortion_weight is None:
-            raise ValueError("distortion_weight must be a number ≥ 0, got None")
+                       non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"),
+                       optional=("steps", "seconds", "target_samples"))
         if not 0.0 <= self.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
         self.field.check()
