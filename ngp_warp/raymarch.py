@@ -20,6 +20,7 @@ which the fill writes the samples without marching again.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -97,6 +98,24 @@ def _check_rays(rays_o: torch.Tensor, rays_d: torch.Tensor, grid: OccupancyGrid)
         raise ValueError(f"rays_o holds {rays_o.shape[0]} rays but rays_d {rays_d.shape[0]}")
 
 
+def _read_total(total: torch.Tensor, before_sync: Callable[[], None] | None) -> int:
+    """``total`` ([1] int32 on the device) on the host. On CUDA with ``before_sync``, through a
+    pinned copy and an event recorded before ``before_sync``'s work, so that the host waits
+    for the count only, while the GPU goes on with that work."""
+    if before_sync is None:
+        return int(total)
+    if not total.is_cuda:
+        before_sync()
+        return int(total)
+    host = torch.empty(1, dtype=total.dtype, pin_memory=True)
+    host.copy_(total, non_blocking=True)
+    copied = torch.cuda.Event()
+    copied.record()
+    before_sync()
+    copied.synchronize()
+    return int(host)
+
+
 _configs: dict[tuple, K.MarchConfig] = {}
 
 
@@ -126,6 +145,7 @@ def ray_marching(
     stratified: bool = False,
     max_samples_per_ray: int | None = None,
     max_samples: int | None = None,
+    before_sync: Callable[[], None] | None = None,
 ) -> RaySamples:
     """March rays through ``grid`` and return the packed samples in occupied cells.
 
@@ -144,6 +164,10 @@ def ray_marching(
             seeded from torch's default CPU generator, so ``torch.manual_seed`` reproduces it).
         max_samples_per_ray: keep at most this many samples per ray (default: no cap).
         max_samples: keep at most this many samples in total; rays past the cap lose their tail.
+        before_sync: called once, after the count pass is queued and before the host waits for
+            the total: work queued there on the current stream keeps the GPU busy through the
+            synchronisation (the trainer queues the previous step's optimizer update). It must
+            not change the rays or the grid.
 
     Returns:
         :class:`RaySamples`.
@@ -183,7 +207,9 @@ def ray_marching(
         torch.cumsum(seg_counts, 0, dtype=torch.int32, out=seg_offsets[1:])
         if max_samples is not None:
             seg_offsets.clamp_(max=int(max_samples))
-        n_samples = int(seg_offsets[-1])  # the one host synchronisation: sizes the outputs
+        n_samples = _read_total(seg_offsets[-1:], before_sync)  # the one host synchronisation
+    elif before_sync is not None:
+        before_sync()
     ray_indices = torch.empty(n_samples, dtype=torch.int64, device=dev)
     floats = torch.empty(8 * n_samples, dtype=torch.float32, device=dev)  # one allocation, contiguous parts
     t_starts, t_ends = floats[:n_samples], floats[n_samples : 2 * n_samples]

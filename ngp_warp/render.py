@@ -152,6 +152,7 @@ def render_rays(
     sigma_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
     sample_capacity: int | None = None,
     return_samples: bool = False,
+    before_sync: Callable[[], None] | None = None,
 ) -> dict:
     """Render rays through ``grid`` with the radiance field ``field_fn``.
 
@@ -179,6 +180,9 @@ def render_rays(
             any sample was marched (padding rows at the grid's centre, with zero weight), so its
             shapes are fixed; rays that do not fit are dropped and flagged in ``ray_mask``.
         return_samples: also return the packed samples and their differentiable weights.
+        before_sync: as in :func:`ngp_warp.ray_marching`: called once, when the march has
+            queued its count and before the host waits for it (independent device work there
+            hides the synchronisation).
 
     Returns:
         dict with ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] (float32, differentiable w.r.t.
@@ -196,6 +200,7 @@ def render_rays(
     samples = ray_marching(
         rays_o, rays_d, grid, near=near, far=far, step_size=step_size, cone_angle=cone_angle, max_step=max_step,
         stratified=stratified, max_samples_per_ray=max_samples_per_ray, max_samples=max_samples,
+        before_sync=before_sync,
     )
     n_rays, dev = rays_o.shape[0], rays_o.device
     bg = _background(background, n_rays, dev)

@@ -172,6 +172,9 @@ def composite_on(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     return px[..., :3] * a + background * (1.0 - a)
 
 
+_GRID_EVERY = 16  # steps between occupancy-grid refreshes
+
+
 class _FieldForward(torch.nn.Module):
     """The field's forward as its own module (its parameters are the field's)."""
 
@@ -221,6 +224,7 @@ class Trainer:
         self._contributing_host: torch.Tensor | None = None  # pinned copy of the last step's count
         self._marched_before = 0
         self._fraction = 1.0  # contributing / marched samples, from the step before
+        self._pending_update: tuple[float, float | None] | None = None  # (lr, decay), see step
         self._graphed_field = None  # captured on first use (see field_fn)
         self._graphed_density = None  # likewise (see _sigma_fn)
         # Exponential moving average of the weights, used for rendering when enabled. The lazy
@@ -316,6 +320,7 @@ class Trainer:
             background=background, stratified=stratified,
             sigma_fn=self._sigma_fn() if prune else None, sample_capacity=capacity,
             return_samples=self.field.training and self.config.distortion_weight > 0,
+            before_sync=self.flush if self.field.training else None,
         )
 
     def sample_batch(self, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -329,19 +334,19 @@ class Trainer:
         return b.rays_o, b.rays_d, b.target, b.background
 
     def step(self, progress: float = 0.0) -> dict:
-        """One update on about ``target_samples`` samples; returns loss, PSNR, rays, samples."""
+        """One update on about ``target_samples`` samples; returns loss, PSNR, rays, samples.
+
+        The optimizer update of the gradients computed here is queued by the next step, while
+        its march waits for the sample count, so that the GPU has work through that
+        synchronisation; anything that reads the weights first calls :meth:`flush`."""
         t0 = time.perf_counter()
-        lr = self.config.lr * self._lr_factor(progress)
-        for opt in self.optimizers():
-            for group in opt.param_groups:
-                group["lr"] = lr
-        decay = self._average_decay()
-        if self.table_optimizer is not None:
-            self.table_optimizer.param_groups[0]["average_decay"] = decay
+        update = (self.config.lr * self._lr_factor(progress), self._average_decay())
         if not self.field.training:  # Module.train() walks every submodule: 27 µs a step
             self.field.train()
         with self._mlp_precision():  # the grid refresh shares the graphs of the density pass
-            self.grid.update(self.step_count, self._density_for_grid)
+            if self.step_count % _GRID_EVERY == 0:
+                self.flush()  # the refresh evaluates the field
+            self.grid.update(self.step_count, self._density_for_grid, every_n=_GRID_EVERY)
             rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
             out = self.render(rays_o, rays_d, None, stratified=True)  # the loss blends the background
             weight = self.config.distortion_weight
@@ -360,10 +365,7 @@ class Trainer:
                 # and back cost 0.45 ms of host time per step (H200, 2^16 rows: 2.20 → 1.76 ms).
                 with torch.autograd.set_multithreading_enabled(False):
                     loss.backward()
-                for opt in self.optimizers():
-                    opt.step()
-                if self._lerped[0]:
-                    torch._foreach_lerp_(self._lerped[0], self._lerped[1], 1.0 - decay)
+                self._pending_update = update
         n_samples = self._samples_in_use(out)
         marched = out["n_marched"] if "n_marched" in out else n_samples  # host ints: no sync
         stats = {"loss": loss.detach(), "mse": mse, "rays": rays_o.shape[0], "samples": n_samples, "marched": marched}
@@ -374,6 +376,23 @@ class Trainer:
         self.step_count += 1
         self.train_seconds += time.perf_counter() - t0
         return stats
+
+    def flush(self) -> None:
+        """Queue the optimizer update of the last step's gradients, if not done yet (see
+        :meth:`step`): its learning rate and weight-average decay are the ones of that step."""
+        if self._pending_update is None:
+            return
+        lr, decay = self._pending_update
+        self._pending_update = None
+        for opt in self.optimizers():
+            for group in opt.param_groups:
+                group["lr"] = lr
+        if self.table_optimizer is not None:
+            self.table_optimizer.param_groups[0]["average_decay"] = decay
+        for opt in self.optimizers():
+            opt.step()
+        if self._lerped[0]:
+            torch._foreach_lerp_(self._lerped[0], self._lerped[1], 1.0 - decay)
 
     def _samples_in_use(self, out: dict) -> int:
         """The sample count the ray count is steered by. Without pruning, the marched count.
@@ -403,6 +422,7 @@ class Trainer:
     def averaged_weights(self) -> list[torch.Tensor] | None:
         """The weight average, one tensor per field parameter in order, up to date (None
         without averaging)."""
+        self.flush()
         if self.averaged is not None and self.table_optimizer is not None:
             self.table_optimizer.flush_averages()
         return self.averaged
@@ -439,6 +459,7 @@ class Trainer:
                 psnr = -10.0 * math.log10(max(float(stats["mse"]), 1e-10))
                 bar.update(done_steps + 1, loss=f"{float(stats['loss']):.4f}", psnr=f"{psnr:.2f}",
                            rays=stats["rays"], samples=stats["samples"])
+        self.flush()
         bar.close()
 
     # -- inference -------------------------------------------------------------------------
@@ -450,6 +471,7 @@ class Trainer:
         that many renders with jittered sample offsets along each ray."""
         if not (isinstance(spp, int) and spp >= 1):
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
+        self.flush()
         self.field.eval()
         with self._render_weights():
             return self._render_image(c2w, intrinsics, width, height, distortion, background, chunk, spp)

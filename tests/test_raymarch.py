@@ -214,6 +214,25 @@ def test_strided_rays_match_contiguous():
     assert a.n_samples > 100 and torch.equal(a.t_starts, b.t_starts) and torch.equal(a.directions, b.directions)
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+@pytest.mark.parametrize("n_rays", [100, 0])
+def test_work_queued_before_the_count_is_read_runs_once_and_changes_nothing(device, n_rays):
+    grid = random_grid(2).to(device)
+    rays_o, rays_d = (t.to(device) for t in random_rays(n_rays, 2))
+    plain = ray_marching(rays_o, rays_d, grid, step_size=0.02)
+    queued = []
+    scratch = torch.zeros(1 << 20, device=device)
+
+    def work():  # device work queued behind the count: the host must not wait for it to read it
+        queued.append(scratch.add_(1.0).sum())
+
+    hidden = ray_marching(rays_o, rays_d, grid, step_size=0.02, before_sync=work)
+    assert len(queued) == 1 and float(queued[0]) == scratch.numel()
+    assert (plain.n_samples > 100) == (n_rays > 0)
+    for name in ("ray_offsets", "ray_indices", "t_starts", "t_ends", "positions", "directions"):
+        assert torch.equal(getattr(plain, name), getattr(hidden, name)), name
+
+
 def _bad_calls():
     grid = OccupancyGrid(torch.tensor(AABB), resolution=8)
     o, d = torch.zeros(4, 3), torch.ones(4, 3)

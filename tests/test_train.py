@@ -51,6 +51,28 @@ def test_training_is_reproducible(tiny_scene):
     torch.testing.assert_close(runs[0], runs[1], rtol=0, atol=1e-6)
 
 
+def test_deferred_optimizer_updates_equal_updates_at_the_end_of_each_step(tiny_scene):
+    # step() leaves its update to the next step's march (while the host waits for the count);
+    # flushing after every step is the plain order. 20 steps cross a grid refresh (step 16),
+    # the lr warm-up and the weight average's decay schedule.
+    def train(flush_each_step: bool) -> list[torch.Tensor]:
+        trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cpu")
+        for _ in range(20):
+            trainer.step(progress=trainer.step_count / 20)
+            assert trainer._pending_update is not None  # the update waits for the next step
+            if flush_each_step:
+                trainer.flush()
+        trainer.flush()
+        return [p.detach().clone() for p in trainer.field.parameters()] + \
+            [a.clone() for a in trainer.averaged_weights()] + [trainer.grid.occs.clone()]
+
+    deferred, plain = train(False), train(True)
+    for a, b in zip(deferred, plain, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    start = Trainer(load_scene(tiny_scene), tiny_config(20), device="cpu").field.encoding.params
+    assert not torch.equal(start, deferred[0])  # the updates were applied
+
+
 @pytest.mark.parametrize("lazy_table_adam", [False, True])
 def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam):
     cfg = tiny_config(40)
