@@ -124,6 +124,33 @@ def _store_snippet(n):
     return "\n".join(lines) + "\n"
 
 
+def _store_bf16_snippet(n):
+    """C++ body storing ``v`` (``n`` floats) rounded to bfloat16 (to nearest, ties to even) at
+    bfloat16 offset ``e * n`` of ``o``, evict-first. sm_80 and later: packed ``cvt.rn.bf16x2``
+    and one vector store; elsewhere (CPU, older GPUs) the same rounding on the bits."""
+    vals = ["v"] if n == 1 else [f"v.c[{i}]" for i in range(n)]
+    lines = [f"unsigned short* q = reinterpret_cast<unsigned short*>(o.data) + (size_t)e * {n};"]
+    lines.append("#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800")
+    pairs = [(vals[2 * i + 1], vals[2 * i]) for i in range(n // 2)] if n > 1 else [("0.0f", vals[0])]
+    lines.append(f"unsigned int h[{len(pairs)}];")
+    for i, (hi, lo) in enumerate(pairs):  # cvt.rn.bf16x2.f32 d, a, b puts a in the upper half
+        lines.append(f'asm("cvt.rn.bf16x2.f32 %0, %1, %2;" : "=r"(h[{i}]) : "f"({hi}), "f"({lo}));')
+    if n == 1:
+        lines.append('asm volatile("st.global.cs.u16 [%0], %1;" :: "l"(q), "h"((unsigned short)h[0]) : "memory");')
+    else:
+        w = len(pairs)
+        vec = "" if w == 1 else f".v{w}"
+        rhs = "%1" if w == 1 else "{" + _regs(w, 1) + "}"
+        ins = ", ".join(f'"r"(h[{i}])' for i in range(w))
+        lines.append(f'asm volatile("st.global.cs{vec}.u32 [%0], {rhs};" :: "l"(q), {ins} : "memory");')
+    lines.append("#else")
+    for i in range(n):
+        lines.append(f"{{ union {{ float f; unsigned int u; }} c; c.f = {vals[i]};")
+        lines.append("  q[%d] = (unsigned short)(c.f != c.f ? 0x7FC0u : (c.u + 0x7FFFu + ((c.u >> 16) & 1u)) >> 16); }" % i)
+    lines.append("#endif")
+    return "\n".join(lines) + "\n"
+
+
 def _red_snippet(n, stride=None):
     """C++ body adding ``v`` (``n`` floats) at float offset ``e * stride`` (default ``n``) of ``g``.
 
@@ -224,6 +251,7 @@ class _IO(NamedTuple):
     gather: object  # (params: array(V), e) -> V, read-only path
     load_stream: object  # (a: array(V), e) -> V, evict-first
     store: object  # (o: array(V), e, v: V), evict-first
+    store_bf16: object  # (o: array(int16), e, v: V), F bfloat16s at e * F, evict-first
     red: object  # (g: array(V), e, v: V)
     red_pair: object  # (g: array(V), e, v: VP)
     red_half: object  # (g: array(VH), e, v: V)
@@ -240,6 +268,7 @@ def _io(n_features):
     s_gather = _load_snippet(F, "p", "nc")
     s_stream = _load_snippet(F, "a", "cs")
     s_store = _store_snippet(F)
+    s_store_bf16 = _store_bf16_snippet(F)
     s_red = _red_snippet(F)
     s_red_pair = _red_snippet(2 * F, F)  # entries e and e + 1
     s_red_half = _red_half_snippet(F)
@@ -253,6 +282,9 @@ def _io(n_features):
 
     @wp.func_native(s_store)
     def store(o: wp.array(dtype=V), e: int, v: V): ...
+
+    @wp.func_native(s_store_bf16)
+    def store_bf16(o: wp.array(dtype=wp.int16), e: int, v: V): ...
 
     @wp.func_native(s_red)
     def red(g: wp.array(dtype=V), e: wp.uint32, v: V): ...
@@ -269,7 +301,7 @@ def _io(n_features):
         @wp.func_native(s_red_half_pair)
         def red_half_pair(g: wp.array(dtype=VH), e: wp.uint32, v: VP): ...
 
-    return _IO(V, VP, gather, load_stream, store, red, red_pair, red_half, red_half_pair)
+    return _IO(V, VP, gather, load_stream, store, store_bf16, red, red_pair, red_half, red_half_pair)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -280,6 +312,7 @@ def _io(n_features):
 class Kernels(NamedTuple):
     config: KernelConfig
     forward: object
+    forward_bf16: object
     backward_params: object
     backward_x: object
 
@@ -292,6 +325,8 @@ def get_kernels(config: KernelConfig) -> Kernels:
 
     * ``forward(n, n_levels, x, params: array(V), scales, meta, out: array(V))`` with ``out``
       the row-major ``[N, L*F]`` output seen as ``N*L`` F-vectors. Items: ``ceil(L/(K*G))*K*N``.
+      ``forward_bf16`` takes the same arguments but ``out: array(int16)``, the ``N*L*F``
+      bfloat16 bits of the output.
     * ``backward_params(n, n_levels, x, scales, meta, grad_out: array(V), grad: array(V),
       grad_half: array(VH), half_from_level, half_base)``: adds ``d out / d params`` into
       ``grad`` (float32, all levels below ``half_from_level``) and ``grad_half`` (float16,
@@ -315,7 +350,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
 
     io = _io(F)
     V, VP, VH = io.V, io.VP, _hvec(F)
-    gather, load_stream, store = io.gather, io.load_stream, io.store
+    gather, load_stream, store, store_bf16 = io.gather, io.load_stream, io.store, io.store_bf16
     red, red_pair, red_half, red_half_pair = io.red, io.red_pair, io.red_half, io.red_half_pair
     VU = wp.types.vector(length=D, dtype=wp.uint32)
     VD = wp.types.vector(length=D, dtype=wp.float32)
@@ -467,6 +502,24 @@ def get_kernels(config: KernelConfig) -> Kernels:
             level = grp * KG + j * K + lane
             if level < n_levels:
                 store(out, p * n_levels + level, encode_level(x, p, params, scales[level], meta[level]))
+
+    @wp.kernel(enable_backward=False, module=module, grid_stride=False)
+    def forward_bf16(
+        first: int,
+        n: int,
+        n_levels: int,
+        x: wp.array(dtype=wp.float32),
+        params: wp.array(dtype=V),
+        scales: wp.array(dtype=wp.float32),
+        meta: wp.array(dtype=wp.vec4i),
+        out: wp.array(dtype=wp.int16),
+    ):
+        # forward's features rounded to bfloat16: half the bytes written, no cast after
+        grp, p, lane = schedule(first + wp.tid(), n)
+        for j in range(G):
+            level = grp * KG + j * K + lane
+            if level < n_levels:
+                store_bf16(out, p * n_levels + level, encode_level(x, p, params, scales[level], meta[level]))
 
     @wp.func
     def scatter(
@@ -632,4 +685,4 @@ def get_kernels(config: KernelConfig) -> Kernels:
             for d in range(D):
                 wp.atomic_add(grad_x, p * D + d, acc[d])
 
-    return Kernels(config, forward, backward_params, backward_x)
+    return Kernels(config, forward, forward_bf16, backward_params, backward_x)

@@ -265,6 +265,21 @@ class HashGridEncoding(torch.nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Encode ``x`` ``[N, D]`` float32 (on the device of ``params``) into ``[N, L*F]`` float32."""
+        self._check_points(x)
+        return _HashGridFunction.apply(x.contiguous(), self.params, self)
+
+    @torch.no_grad()
+    def encode(self, x: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """The encoding of ``x`` ``[N, D]`` float32 without autograd, as ``[N, L*F]`` ``dtype``:
+        float32, or bfloat16 rounded in the kernel (to nearest, ties to even, as
+        ``.to(torch.bfloat16)`` rounds the float32 output), which writes half the bytes and
+        saves the cast, e.g. for a bf16 MLP's no-gradient density pass."""
+        if dtype not in (torch.float32, torch.bfloat16):
+            raise ValueError(f"dtype must be torch.float32 or torch.bfloat16, got {dtype}")
+        self._check_points(x)
+        return self._encode(x.contiguous(), self.params, dtype)
+
+    def _check_points(self, x: torch.Tensor) -> None:
         if not isinstance(x, torch.Tensor):
             raise ValueError(f"HashGridEncoding expects a torch.Tensor, got {type(x).__name__}")
         if x.dim() != 2 or x.shape[1] != self.n_input_dims:
@@ -278,7 +293,6 @@ class HashGridEncoding(torch.nn.Module):
         dx_items = -(-self.n_levels // max(1, config.dx_levels_per_thread)) * n
         if max(self._n_items(config, n), dx_items) > _MAX_ITEMS:  # kernels index items with int32
             raise ValueError(f"too many points for one call ({n}); split the batch")
-        return _HashGridFunction.apply(x.contiguous(), self.params, self)
 
     # -- kernel plumbing -------------------------------------------------------------------
 
@@ -322,26 +336,22 @@ class HashGridEncoding(torch.nn.Module):
         group = config.levels_per_thread * config.level_lanes
         return -(-self.n_levels // group) * config.level_lanes * n
 
-    def _encode(self, x: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+    def _encode(self, x: torch.Tensor, params: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         n, L, F = x.shape[0], self.n_levels, self.n_features_per_level
-        out = torch.empty((n, L * F), dtype=torch.float32, device=x.device)
+        out = torch.empty((n, L * F), dtype=dtype, device=x.device)
         if n == 0:
             return out
         device = _wp.device_of(x)
         k = self._kernels(device)
         scales, meta = self._level_arrays()
+        if dtype == torch.bfloat16:
+            kernel, target = k.forward_bf16, _wp.to_wp(out.view(torch.int16).reshape(-1))
+        else:
+            kernel, target = k.forward, self._entries(out)
         _wp.launch(
-            k.forward,
+            kernel,
             self._n_items(k.config, n),
-            [
-                n,
-                L,
-                _wp.to_wp(x.reshape(-1)),
-                self._entries(_aligned(params.detach())),
-                scales,
-                meta,
-                self._entries(out),
-            ],
+            [n, L, _wp.to_wp(x.reshape(-1)), self._entries(_aligned(params.detach())), scales, meta, target],
             device,
         )
         return out

@@ -21,6 +21,7 @@ import warp as wp
 from ngp_warp import _wp
 from ngp_warp._checks import check_numbers
 from ngp_warp.encoding import HashGridEncoding
+from ngp_warp.kernels import density as density_kernels
 from ngp_warp.kernels import sh as sh_kernels
 
 
@@ -88,6 +89,24 @@ def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def density_from_log(log_sigma: torch.Tensor, positions: torch.Tensor, aabb: torch.Tensor) -> torch.Tensor:
+    """σ = exp(h) at positions inside ``aabb``, 0 outside, in one Warp kernel (no gradient).
+
+    log_sigma: [N, 1] or [N] float32 or bfloat16 h, contiguous. positions: [N, 3] float32.
+    aabb: [6] float32 on their device. Returns [N] float32.
+    """
+    n = positions.shape[0]
+    if log_sigma.numel() != n or not log_sigma.is_contiguous() or log_sigma.dtype not in (torch.float32, torch.bfloat16):
+        raise ValueError(f"log_sigma must be a contiguous float32 or bfloat16 [{n}] or [{n}, 1] tensor")
+    sigma = torch.empty(n, dtype=torch.float32, device=positions.device)
+    if log_sigma.dtype == torch.bfloat16:
+        kernel, h = density_kernels.density_from_log_bf16, log_sigma.view(torch.int16).reshape(n)
+    else:
+        kernel, h = density_kernels.density_from_log, log_sigma.reshape(n)
+    _wp.launch(kernel, n, [h, _wp.to_wp(positions, dtype=wp.vec3), aabb, sigma], _wp.device_of(positions))
+    return sigma
+
+
 def _mlp(sizes: list[int]) -> nn.Sequential:
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
@@ -127,9 +146,13 @@ class NGPField(nn.Module):
         """MLP weights (the ones that get weight decay)."""
         return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters())
 
-    def _features(self, positions: torch.Tensor) -> torch.Tensor:
+    def _unit(self, positions: torch.Tensor) -> torch.Tensor:
+        """Positions mapped from the box to [0, 1]^3, contiguous (the encoding's input)."""
         lo, hi = self.aabb[:3], self.aabb[3:]
-        return self.encoding(((positions - lo) / (hi - lo)).contiguous())
+        return ((positions - lo) / (hi - lo)).contiguous()
+
+    def _features(self, positions: torch.Tensor) -> torch.Tensor:
+        return self.encoding(self._unit(positions))
 
     def _geometry(self, positions: torch.Tensor) -> torch.Tensor:
         return self.density_mlp(self._features(positions))
@@ -138,9 +161,11 @@ class NGPField(nn.Module):
         """The density MLP's first output [N, 1], without autograd: each hidden layer's ReLU runs
         in its matmul's epilogue (``torch._addmm_activation``, cuBLASLt on CUDA), and the last
         layer computes only the one output used. In the autocast dtype when autocast is on."""
-        h = self._features(positions)
-        dtype = torch.get_autocast_dtype("cuda") if h.is_cuda and torch.is_autocast_enabled("cuda") else h.dtype
-        h = h.to(dtype)
+        x = self._unit(positions)
+        autocast = x.is_cuda and torch.is_autocast_enabled("cuda")
+        dtype = torch.get_autocast_dtype("cuda") if autocast else x.dtype
+        # bfloat16 features come rounded from the kernel: half the bytes, no cast
+        h = self.encoding.encode(x, dtype if dtype == torch.bfloat16 else torch.float32).to(dtype)
         layers = [m.weight.to(dtype) for m in self.density_mlp if isinstance(m, nn.Linear)]
         for w in layers[:-1]:
             h = torch._addmm_activation(h.new_zeros(w.shape[0]), h, w.t())
@@ -151,11 +176,11 @@ class NGPField(nn.Module):
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
         """σ at positions [N, 3] float32 → [N] float32 (zero outside the box). On CUDA without
-        autograd, through :meth:`_log_density`'s fused matmuls (equal up to matmul rounding)."""
+        autograd, through :meth:`_log_density`'s fused matmuls (equal up to matmul rounding)
+        and :func:`density_from_log`."""
         if positions.is_cuda and not torch.is_grad_enabled():
-            h = self._log_density(positions)
-        else:
-            h = self._geometry(positions)
+            return density_from_log(self._log_density(positions), positions.contiguous(), self.aabb)
+        h = self._geometry(positions)
         return trunc_exp(h[:, 0].float()) * self._inside(positions)
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

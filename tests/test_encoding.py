@@ -85,6 +85,41 @@ def test_cuda_schedules_on_cpu(cfg, lanes, levels, paired):
     assert rel_err(y, y64) < 2e-6 and rel_err(gp, gp64) < 2e-6 and rel_err(gx, gx64) < 1e-5
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+@pytest.mark.parametrize("cuda_schedule", [False, True])
+@pytest.mark.parametrize("cfg", [CONFIGS[1], CONFIGS[0], CONFIGS[2], CONFIGS[3]], ids=lambda c: f"F{c[2]}")
+def test_bfloat16_encoding_is_the_rounded_float32_encoding(cfg, cuda_schedule, device):
+    D, L, F, T, base, scale, interp, n, (lo, hi) = cfg
+    enc = HashGridEncoding(D, L, F, T, base, scale, interp).to(device)
+    enc._cuda_schedule_on_cpu = cuda_schedule
+    with torch.no_grad():
+        enc.params.uniform_(-1.0, 1.0)
+    x = (torch.rand(n, D) * (hi - lo) + lo).to(device)
+    full = enc.encode(x)
+    half = enc.encode(x, torch.bfloat16)
+    assert half.dtype == torch.bfloat16 and half.shape == (n, L * F) and not half.requires_grad
+    assert full.abs().min() > 0 and torch.equal(full, enc(x).detach())
+    assert torch.equal(half.view(torch.int16), full.to(torch.bfloat16).view(torch.int16))
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_bfloat16_encoding_rounds_ties_to_even(device):
+    # One dense level at scale 2: points with coordinates 0.25 or 0.75 sit on grid vertices,
+    # so the output is a table entry exactly; the entries are halfway between bfloat16s.
+    enc = HashGridEncoding(3, 1, 2, 8, 3, 2.0).to(device)
+    assert enc.scales == (2.0,) and not enc.hashed[0]
+    ulp = 2.0**-7  # bfloat16 spacing in [1, 2)
+    ties = torch.tensor([1 + ulp / 2, 1 + 3 * ulp / 2, -(1 + ulp / 2), -(1 + 5 * ulp / 2), 2 ** -130 * 3, 65504.0])
+    with torch.no_grad():
+        enc.params.copy_(ties.repeat(enc.n_params // ties.numel() + 1)[: enc.n_params])
+    x = torch.tensor([[a, b, c] for a in (0.25, 0.75) for b in (0.25, 0.75) for c in (0.25, 0.75)], device=device)
+    full = enc.encode(x)
+    assert set(full.flatten().tolist()) <= set(ties.tolist()) and len(set(full.flatten().tolist())) > 3
+    assert torch.equal(enc.encode(x, torch.bfloat16).view(torch.int16), full.to(torch.bfloat16).view(torch.int16))
+    with pytest.raises(ValueError, match="dtype"):
+        enc.encode(x, torch.float16)
+
+
 def test_default_level_table_matches_tcnn():
     """The NeRF configuration: 3 dense levels (16^3, 32^3, 64^3), then 13 of 2^19 entries.
 

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from ngp_warp._reference.field import spherical_harmonics_deg4_ref
-from ngp_warp.field import FieldConfig, NGPField, spherical_harmonics_deg4, trunc_exp
+from ngp_warp.field import FieldConfig, NGPField, density_from_log, spherical_harmonics_deg4, trunc_exp
 
 
 def test_spherical_harmonics_are_orthonormal():
@@ -79,6 +79,24 @@ def test_fused_log_density_matches_the_density_mlp():
         got = field._log_density(x)
     assert got.shape == (500, 1) and 0.1 < (hidden > 0).float().mean() < 0.9
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_density_from_log_is_exp_inside_the_box_and_zero_outside(dtype, device):
+    aabb = torch.tensor([-1.0, -0.5, -2.0, 1.0, 0.5, 2.0], device=device)
+    x = (torch.rand(3000, 3, device=device) * 2.4 - 1.2) * aabb[3:]
+    x[:3] = aabb[:3]  # the box's faces are inside
+    x[3:6] = aabb[3:]
+    h = (torch.randn(3000, 1, device=device) * 3).to(dtype)
+    sigma = density_from_log(h, x, aabb)
+    inside = ((x >= aabb[:3]) & (x <= aabb[3:])).all(-1)
+    assert 0.2 < inside.float().mean() < 0.9 and inside[:6].all()
+    want = torch.where(inside, h.double().exp().reshape(-1), 0.0)
+    assert sigma.dtype == torch.float32 and sigma.shape == (3000,)
+    torch.testing.assert_close(sigma.double(), want, rtol=1e-6, atol=0)
+    with pytest.raises(ValueError, match="log_sigma"):
+        density_from_log(h[:-1], x, aabb)
 
 
 @pytest.mark.cuda
