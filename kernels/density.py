@@ -4,8 +4,9 @@ r"""The density activation of the field's no-gradient pass: log-density → σ, 
 
     \sigma = \begin{cases} \exp(h_0) & x \in [lo, hi] \\ 0 & \text{otherwise} \end{cases}
 
-``aabb`` is ``(xmin, ymin, zmin, xmax, ymax, zmax)`` (the truncated exponential of training differs from ``exp`` only in its gradient). ``h_0`` comes
-from the MLP as float32 or as bfloat16 bits (Warp has no bfloat16 type).
+with ``aabb = (xmin, ymin, zmin, xmax, ymax, zmax)``; the truncated exponential of training
+differs from ``exp`` only in its gradient. ``h_0`` comes from the MLP as float32 or as
+bfloat16 bits (Warp has no bfloat16 type).
 """
 
 import warp as wp
