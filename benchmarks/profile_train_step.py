@@ -44,11 +44,11 @@ def time_phases(trainer: Trainer) -> dict[str, float]:
     ngp_warp.render.prune_samples = timed("  prune", ngp_warp.render.prune_samples)
     trainer.field_fn = timed("  field forward", trainer.field_fn)
     for opt in trainer.optimizers():
-        opt.step = timed("optimizer", opt.step)
+        opt.step = timed("    optimizer (the last step's, queued in the march)", opt.step)
     ngp_warp.trainer.ray_loss = timed("loss forward", ngp_warp.trainer.ray_loss)
     ngp_warp.trainer.distortion_loss_packed = timed("distortion forward", ngp_warp.trainer.distortion_loss_packed)
     torch.Tensor.backward = timed("backward (autograd engine)", torch.Tensor.backward)
-    torch._foreach_lerp_ = timed("MLP average lerp", torch._foreach_lerp_)
+    torch._foreach_lerp_ = timed("    MLP average lerp (likewise)", torch._foreach_lerp_)
     make_sigma_fn = trainer._sigma_fn  # returns the density function the render then calls
     trainer._sigma_fn = lambda: timed("  density passes (no grad; the grid refresh's included)", make_sigma_fn())
     return spent

@@ -272,8 +272,9 @@ class HashGridEncoding(torch.nn.Module):
     def encode(self, x: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """The encoding of ``x`` ``[N, D]`` float32 without autograd, as ``[N, L*F]`` ``dtype``:
         float32, or bfloat16 rounded in the kernel (to nearest, ties to even, as
-        ``.to(torch.bfloat16)`` rounds the float32 output), which writes half the bytes and
-        saves the cast, e.g. for a bf16 MLP's no-gradient density pass."""
+        ``.to(torch.bfloat16)`` rounds the float32 output; NaNs stay NaN, with any payload).
+        bfloat16 writes half the bytes and saves the cast, e.g. for a bf16 MLP's no-gradient
+        density pass."""
         if dtype not in (torch.float32, torch.bfloat16):
             raise ValueError(f"dtype must be torch.float32 or torch.bfloat16, got {dtype}")
         self._check_points(x)

@@ -91,6 +91,7 @@ def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
 
 def density_from_log(log_sigma: torch.Tensor, positions: torch.Tensor, aabb: torch.Tensor) -> torch.Tensor:
     """σ = exp(h) at positions inside ``aabb``, 0 outside, in one Warp kernel (no gradient).
+    Outside the box σ is 0 even where exp(h) overflows (``trunc_exp(h) * inside`` gives NaN).
 
     log_sigma: [N, 1] or [N] float32 or bfloat16 h, contiguous. positions: [N, 3] float32.
     aabb: [6] float32 on their device. Returns [N] float32.
@@ -179,7 +180,10 @@ class NGPField(nn.Module):
         autograd, through :meth:`_log_density`'s fused matmuls (equal up to matmul rounding)
         and :func:`density_from_log`."""
         if positions.is_cuda and not torch.is_grad_enabled():
-            return density_from_log(self._log_density(positions), positions.contiguous(), self.aabb)
+            h = self._log_density(positions)
+            if h.dtype not in (torch.float32, torch.bfloat16):  # e.g. float16 autocast
+                h = h.float()
+            return density_from_log(h, positions.contiguous(), self.aabb)
         h = self._geometry(positions)
         return trunc_exp(h[:, 0].float()) * self._inside(positions)
 

@@ -110,7 +110,7 @@ def _read_total(total: torch.Tensor, before_sync: Callable[[], None] | None) -> 
     host = torch.empty(1, dtype=total.dtype, pin_memory=True)
     host.copy_(total, non_blocking=True)
     copied = torch.cuda.Event()
-    copied.record()
+    copied.record(torch.cuda.current_stream(total.device))  # the copy's stream, whichever GPU is current
     before_sync()
     copied.synchronize()
     return int(host)

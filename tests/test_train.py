@@ -57,12 +57,22 @@ def test_deferred_optimizer_updates_equal_updates_at_the_end_of_each_step(tiny_s
     # the lr warm-up and the weight average's decay schedule.
     def train(flush_each_step: bool) -> list[torch.Tensor]:
         trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cpu")
+        mlp_step, lrs = trainer.optimizer.step, []
+
+        def recording_step(*args, **kwargs):  # each update's lr: the schedule's at its own step
+            lrs.append(trainer.optimizer.param_groups[0]["lr"])
+            return mlp_step(*args, **kwargs)
+
+        trainer.optimizer.step = recording_step
         for _ in range(20):
             trainer.step(progress=trainer.step_count / 20)
             assert trainer._pending_update is not None  # the update waits for the next step
             if flush_each_step:
                 trainer.flush()
         trainer.flush()
+        schedule = [1e-2 * min(1.0, 0.01 + k / 100) * 0.33 ** sum(k / 20 >= m for m in (0.5, 0.75, 0.9))
+                    for k in range(20)]
+        assert lrs == pytest.approx(schedule, rel=1e-12)
         return [p.detach().clone() for p in trainer.field.parameters()] + \
             [a.clone() for a in trainer.averaged_weights()] + [trainer.grid.occs.clone()]
 
