@@ -172,9 +172,6 @@ def composite_on(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     return px[..., :3] * a + background * (1.0 - a)
 
 
-_GRID_EVERY = 16  # steps between occupancy-grid refreshes
-
-
 class _FieldForward(torch.nn.Module):
     """The field's forward as its own module (its parameters are the field's)."""
 
@@ -254,7 +251,9 @@ class Trainer:
 
     def _density_for_grid(self, x: torch.Tensor) -> torch.Tensor:
         # The grid stores optical thickness of one step, as instant-ngp and nerfacc do. Its
-        # refresh evaluates chunks of 2^18 cells, one more bucket for the graphed density pass.
+        # refresh evaluates chunks of 2^18 cells, one more bucket for the graphed density pass,
+        # with the last step's update applied first.
+        self.flush()
         return self._sigma_fn()(x) * self.step_size
 
     def field_fn(self, positions: torch.Tensor, directions: torch.Tensor):
@@ -344,9 +343,7 @@ class Trainer:
         if not self.field.training:  # Module.train() walks every submodule: 27 µs a step
             self.field.train()
         with self._mlp_precision():  # the grid refresh shares the graphs of the density pass
-            if self.step_count % _GRID_EVERY == 0:
-                self.flush()  # the refresh evaluates the field
-            self.grid.update(self.step_count, self._density_for_grid, every_n=_GRID_EVERY)
+            self.grid.update(self.step_count, self._density_for_grid)
             rays_o, rays_d, target, background = self.sample_batch(self.n_rays)
             out = self.render(rays_o, rays_d, None, stratified=True)  # the loss blends the background
             weight = self.config.distortion_weight
@@ -429,7 +426,8 @@ class Trainer:
 
     @contextlib.contextmanager
     def _render_weights(self):
-        """The averaged weights in the field while rendering (when averaging is on)."""
+        """The averaged weights in the field while rendering (when averaging is on); either way
+        the last step's update is applied first (by :meth:`averaged_weights`)."""
         averaged = self.averaged_weights()
         if averaged is None:
             yield
@@ -471,7 +469,6 @@ class Trainer:
         that many renders with jittered sample offsets along each ray."""
         if not (isinstance(spp, int) and spp >= 1):
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
-        self.flush()
         self.field.eval()
         with self._render_weights():
             return self._render_image(c2w, intrinsics, width, height, distortion, background, chunk, spp)
