@@ -6,23 +6,29 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 UNDISTORT_ITERATIONS = 10  # Newton steps, here and in ngp_warp.cameras; fixed, so nothing syncs
+LENS_PINHOLE = 0  # lens_model codes, shared with ngp_warp.cameras
+LENS_OPENCV = 1
+LENS_FISHEYE = 2
+
+vec6 = wp.types.vector(length=6, dtype=float)  # k1, k2, k3, k4, p1, p2
 
 
 # OpenCV radial-tangential distortion inverted by Newton's method from (xd, yd):
 #   distort(x, y) = (x (1 + ρ) + 2 p1 x y + p2 (r² + 2x²),  y (1 + ρ) + 2 p2 x y + p1 (r² + 2y²)),
-#   ρ = k1 r² + k2 r⁴;   (x, y) ← (x, y) − J⁻¹ (distort(x, y) − (xd, yd)).
+#   ρ = k1 r² + k2 r⁴ + k3 r⁶;   (x, y) ← (x, y) − J⁻¹ (distort(x, y) − (xd, yd)).
 @wp.func
-def undistort(xd: float, yd: float, k: wp.vec4):
+def undistort(xd: float, yd: float, k: vec6):
     k1 = k[0]
     k2 = k[1]
-    p1 = k[2]
-    p2 = k[3]
+    k3 = k[2]
+    p1 = k[4]
+    p2 = k[5]
     x = xd
     y = yd
     for _ in range(UNDISTORT_ITERATIONS):
         r2 = x * x + y * y
-        rho = r2 * (k1 + k2 * r2)
-        drho = 2.0 * (k1 + 2.0 * k2 * r2)
+        rho = r2 * (k1 + r2 * (k2 + k3 * r2))
+        drho = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2))
         ex = x * (1.0 + rho) + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
         ey = y * (1.0 + rho) + 2.0 * p2 * x * y + p1 * (r2 + 2.0 * y * y) - yd
         jxx = 1.0 + rho + drho * x * x + 2.0 * p1 * y + 6.0 * p2 * x
@@ -37,12 +43,34 @@ def undistort(xd: float, yd: float, k: wp.vec4):
     return wp.vec2(x, y)
 
 
+# OpenCV fisheye (equidistant) lens: a ray at angle θ from the axis lands at radius
+#   r_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸) along its azimuth (xd, yd) / r_d;
+# θ by Newton from θ = r_d, then the camera-frame ray (OpenCV axes, z forward) is
+#   (sin θ xd / r_d, sin θ yd / r_d, cos θ).
+@wp.func
+def fisheye_ray(xd: float, yd: float, k: vec6):
+    rd = wp.sqrt(xd * xd + yd * yd)
+    theta = rd
+    for _ in range(UNDISTORT_ITERATIONS):
+        t2 = theta * theta
+        f = theta * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))) - rd
+        df = 1.0 + t2 * (3.0 * k[0] + t2 * (5.0 * k[1] + t2 * (7.0 * k[2] + t2 * 9.0 * k[3])))
+        if wp.abs(df) < 1.0e-12:
+            df = 1.0e-12
+        theta = theta - f / df
+    s = 1.0
+    if rd > 1.0e-12:
+        s = wp.sin(theta) / rd
+    return wp.vec3(xd * s, yd * s, wp.cos(theta))
+
+
 # Ray i: sub-ray s = i mod sub² of pixel q = i div sub²; the pixel's image k and (px, py) are
 # drawn uniformly (Warp's RNG keyed by seed and q, so a pixel's sub-rays agree; its first
 # sub-ray writes the pixel's row q of pixels, target and background), then
-#   x = (px + ox − cx) / fx,  y = (py + oy − cy) / fy  (undistorted when has_distortion),
+#   x = (px + ox − cx) / fx,  y = (py + oy − cy) / fy  (undistorted for LENS_OPENCV),
 #   (ox, oy) = ((s mod sub) + 1/2, (s div sub) + 1/2) / sub  (the pixel centre for sub = 1),
-#   d = R (x, −y, −1) / |R (x, −y, −1)|,  o = t  for the camera-to-world [R | t] of image k;
+#   d = R (x, −y, −1) / |R (x, −y, −1)|,  o = t  for the camera-to-world [R | t] of image k
+#   (LENS_FISHEYE: d = R (x', −y', −z') / |·| for (x', y', z') = fisheye_ray(x, y));
 #   bg ~ U[0, 1)³ with an alpha channel (else white), target = rgb a + bg (1 − a), values / 255.
 @wp.kernel
 def sample_pixels(
@@ -53,11 +81,11 @@ def sample_pixels(
     width: int,
     height: int,
     channels: int,
-    has_distortion: int,
+    lens_model: int,
     images: wp.array(dtype=wp.uint8),
     c2w: wp.array(dtype=float),
     intrinsics: wp.array(dtype=wp.vec4),
-    distortion: wp.array(dtype=wp.vec4),
+    distortion: wp.array(dtype=vec6),
     pixels: wp.array(dtype=wp.vec3i),
     rays_o: wp.array(dtype=wp.vec3),
     rays_d: wp.array(dtype=wp.vec3),
@@ -77,7 +105,7 @@ def sample_pixels(
     oy = (float(s // sub) + 0.5) / float(sub)
     x = (float(px) + ox - f[2]) / f[0]
     y = (float(py) + oy - f[3]) / f[1]
-    if has_distortion != 0:
+    if lens_model == LENS_OPENCV:
         u = undistort(x, y, distortion[k])
         x = u[0]
         y = u[1]
@@ -87,6 +115,13 @@ def sample_pixels(
         c2w[m + 4] * x - c2w[m + 5] * y - c2w[m + 6],
         c2w[m + 8] * x - c2w[m + 9] * y - c2w[m + 10],
     )
+    if lens_model == LENS_FISHEYE:
+        r = fisheye_ray(x, y, distortion[k])
+        d = wp.vec3(
+            c2w[m + 0] * r[0] - c2w[m + 1] * r[1] - c2w[m + 2] * r[2],
+            c2w[m + 4] * r[0] - c2w[m + 5] * r[1] - c2w[m + 6] * r[2],
+            c2w[m + 8] * r[0] - c2w[m + 9] * r[1] - c2w[m + 10] * r[2],
+        )
     rays_o[i] = wp.vec3(c2w[m + 3], c2w[m + 7], c2w[m + 11])
     rays_d[i] = wp.normalize(d)
 

@@ -1,4 +1,8 @@
-"""Pinhole cameras with OpenCV lens distortion: pixel -> world ray (torch, any device).
+"""Cameras with OpenCV lenses: pixel -> world ray (torch, any device).
+
+Lenses: the ideal pinhole, OpenCV's radial-tangential model (k1 k2 k3 p1 p2) and OpenCV's
+fisheye (equidistant, k1..k4); distortion vectors are [6] k1, k2, k3, k4, p1, p2. The forward
+(world -> pixel) models are in :mod:`ngp_warp._reference.cameras`.
 
 Conventions (NeRF-synthetic / instant-ngp ``transforms.json``): camera-to-world matrices in the
 OpenGL / Blender convention -- the camera looks down its -z axis, +y is up, +x is right; pixel
@@ -9,7 +13,10 @@ from __future__ import annotations
 
 import torch
 
-from ngp_warp.kernels.batch import UNDISTORT_ITERATIONS  # one count for the torch and Warp twins
+# one iteration count and one set of lens codes for the torch and Warp twins
+from ngp_warp.kernels.batch import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, UNDISTORT_ITERATIONS
+
+__all__ = ["generate_rays", "undistort", "fisheye_ray", "LENS_PINHOLE", "LENS_OPENCV", "LENS_FISHEYE"]
 
 
 def _check(t: torch.Tensor, name: str, shape: tuple, like: torch.Tensor | None = None) -> None:
@@ -22,50 +29,31 @@ def _check(t: torch.Tensor, name: str, shape: tuple, like: torch.Tensor | None =
         raise ValueError(f"{name} is on {t.device} but c2w is on {like.device}")
 
 
-def distort(x: torch.Tensor, y: torch.Tensor, distortion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """OpenCV radial-tangential distortion of normalised image coordinates.
-
-    Args:
-        x, y: [B] float, undistorted normalised coordinates ((u - cx)/fx, (v - cy)/fy), y down.
-        distortion: [B, 4] float, k1, k2, p1, p2.
-
-    Returns:
-        (xd, yd): [B] distorted coordinates,
-
-    .. math::
-        r^2 = x^2 + y^2,\\quad \\rho = k_1 r^2 + k_2 r^4,\\\\
-        x_d = x (1 + \\rho) + 2 p_1 x y + p_2 (r^2 + 2 x^2),\\quad
-        y_d = y (1 + \\rho) + 2 p_2 x y + p_1 (r^2 + 2 y^2).
-    """
-    k1, k2, p1, p2 = distortion.unbind(-1)
-    r2 = x * x + y * y
-    rho = r2 * (k1 + k2 * r2)
-    xd = x * (1 + rho) + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * (1 + rho) + 2 * p2 * x * y + p1 * (r2 + 2 * y * y)
-    return xd, yd
-
-
 def undistort(xd: torch.Tensor, yd: torch.Tensor, distortion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Invert :func:`distort` by Newton's method from (xd, yd), as instant-ngp does
-    (its ``iterative_camera_undistortion``), with the analytic 2x2 Jacobian and a fixed
-    :data:`UNDISTORT_ITERATIONS` steps. Zero distortion is the identity exactly.
+    """Invert OpenCV's radial-tangential distortion by Newton's method from (xd, yd), as
+    instant-ngp does (its ``iterative_camera_undistortion``), with the analytic 2x2 Jacobian and
+    a fixed :data:`UNDISTORT_ITERATIONS` steps. Zero distortion is the identity exactly.
 
     Args:
-        xd, yd: [B] float, distorted normalised coordinates.
-        distortion: [B, 4] float, k1, k2, p1, p2.
+        xd, yd: [B] float, distorted normalised coordinates ((u - cx)/fx, (v - cy)/fy), y down.
+        distortion: [B, 6] float, k1, k2, k3, k4, p1, p2 (k4 unused).
 
     Returns:
-        (x, y): [B] with ``distort(x, y) == (xd, yd)`` to float precision,
+        (x, y): [B] with ``distort(x, y) == (xd, yd)`` to float precision
+        (:func:`ngp_warp._reference.cameras.distort`),
 
     .. math::
+        r^2 = x^2 + y^2,\\quad \\rho = k_1 r^2 + k_2 r^4 + k_3 r^6,\\\\
+        \\mathrm{distort}(x, y) = (x (1 + \\rho) + 2 p_1 x y + p_2 (r^2 + 2 x^2),\\;
+        y (1 + \\rho) + 2 p_2 x y + p_1 (r^2 + 2 y^2)),\\\\
         (x, y) \\leftarrow (x, y) - J^{-1} (\\mathrm{distort}(x, y) - (x_d, y_d)).
     """
-    k1, k2, p1, p2 = distortion.unbind(-1)
+    k1, k2, k3, _, p1, p2 = distortion.unbind(-1)
     x, y = xd, yd
     for _ in range(UNDISTORT_ITERATIONS):
         r2 = x * x + y * y
-        rho = r2 * (k1 + k2 * r2)
-        drho = 2 * (k1 + 2 * k2 * r2)  # d rho / dx = drho * x
+        rho = r2 * (k1 + r2 * (k2 + k3 * r2))
+        drho = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))  # d rho / dx = drho * x
         ex = x * (1 + rho) + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
         ey = y * (1 + rho) + 2 * p2 * x * y + p1 * (r2 + 2 * y * y) - yd
         jxx = 1 + rho + drho * x * x + 2 * p1 * y + 6 * p2 * x
@@ -79,21 +67,53 @@ def undistort(xd: torch.Tensor, yd: torch.Tensor, distortion: torch.Tensor) -> t
     return x, y
 
 
+def fisheye_ray(xd: torch.Tensor, yd: torch.Tensor, distortion: torch.Tensor) -> torch.Tensor:
+    """Camera-frame rays (OpenCV axes: x right, y down, z forward) of an OpenCV fisheye lens.
+
+    Args:
+        xd, yd: [B] float, distorted normalised coordinates.
+        distortion: [B, 6] float, k1, k2, k3, k4 (p1, p2 unused).
+
+    Returns:
+        [B, 3] unit rays: theta from Newton's method (:data:`UNDISTORT_ITERATIONS` steps from
+        theta = r_d) on the equidistant model,
+
+    .. math::
+        r_d = \\theta (1 + k_1 \\theta^2 + k_2 \\theta^4 + k_3 \\theta^6 + k_4 \\theta^8),\\quad
+        r_d = \\lVert (x_d, y_d) \\rVert,\\quad
+        \\mathrm{ray} = (\\sin\\theta\\, x_d / r_d,\\; \\sin\\theta\\, y_d / r_d,\\; \\cos\\theta).
+    """
+    k1, k2, k3, k4 = distortion[:, :4].unbind(-1)
+    rd = torch.sqrt(xd * xd + yd * yd)
+    theta = rd
+    for _ in range(UNDISTORT_ITERATIONS):
+        t2 = theta * theta
+        f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - rd
+        df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+        df = torch.where(df.abs() < 1e-12, torch.full_like(df, 1e-12), df)
+        theta = theta - f / df
+    s = torch.where(rd > 1e-12, torch.sin(theta) / rd.clamp_min(1e-12), torch.ones_like(rd))
+    return torch.stack([xd * s, yd * s, torch.cos(theta)], dim=-1)
+
+
 def generate_rays(
     c2w: torch.Tensor,
     intrinsics: torch.Tensor,
     distortion: torch.Tensor | None,
     px: torch.Tensor,
     py: torch.Tensor,
+    fisheye: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """World-space rays through pixel centres.
 
     Args:
         c2w: [B, 3, 4] float32 (or float64) camera-to-world, OpenGL convention.
         intrinsics: [B, 4] float, fx, fy, cx, cy in pixels.
-        distortion: [B, 4] float k1, k2, p1, p2, or None for an ideal pinhole (zeros give the
-            same rays, after a few no-op Newton steps).
+        distortion: [B, 6] float k1, k2, k3, k4, p1, p2, or None for an ideal pinhole (zeros
+            give the same rays, after a few no-op Newton steps).
         px, py: [B] integer (or float) pixel column and row.
+        fisheye: the lens is OpenCV's fisheye (``distortion`` required): the camera-frame ray
+            is :func:`fisheye_ray` (x', y', z') and d = R (x', -y', -z') / |.| instead.
 
     Returns:
         rays_o: [B, 3] camera centres; rays_d: [B, 3] unit directions; dtype of ``c2w``, on its
@@ -112,14 +132,20 @@ def generate_rays(
     _check(px, "px", (b,), c2w)
     _check(py, "py", (b,), c2w)
     if distortion is not None:
-        _check(distortion, "distortion", (b, 4), c2w)
+        _check(distortion, "distortion", (b, 6), c2w)
+    elif fisheye:
+        raise ValueError("fisheye rays need the distortion coefficients (zeros for the plain equidistant lens)")
     dtype = c2w.dtype
     intr = intrinsics.to(dtype)
     x = (px.to(dtype) + 0.5 - intr[:, 2]) / intr[:, 0]
     y = (py.to(dtype) + 0.5 - intr[:, 3]) / intr[:, 1]
+    rot = c2w[:, :, :3]
+    if fisheye:
+        cam = fisheye_ray(x, y, distortion.to(dtype))
+        d = rot[:, :, 0] * cam[:, None, 0] - rot[:, :, 1] * cam[:, None, 1] - rot[:, :, 2] * cam[:, None, 2]
+        return c2w[:, :, 3].contiguous(), d / d.norm(dim=-1, keepdim=True)
     if distortion is not None:
         x, y = undistort(x, y, distortion.to(dtype))
-    rot = c2w[:, :, :3]
     d = rot[:, :, 0] * x[:, None] - rot[:, :, 1] * y[:, None] - rot[:, :, 2]
     d = d / d.norm(dim=-1, keepdim=True)
     return c2w[:, :, 3].contiguous(), d

@@ -81,3 +81,67 @@ def instant_ngp(root: Path, n: int = 7, size: tuple[int, int] = (8, 6), seed: in
 
 def fov_to_focal(pixels: float, angle: float) -> float:
     return 0.5 * pixels / math.tan(0.5 * angle)
+
+
+# ---- COLMAP models ----------------------------------------------------------------------------
+
+COLMAP_MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4,
+                    "OPENCV_FISHEYE": 5, "FULL_OPENCV": 6, "FOV": 7}
+
+
+def rotation_to_qvec(rot: np.ndarray) -> np.ndarray:
+    """[4] (w, x, y, z) unit quaternion of a [3, 3] rotation (w > 0)."""
+    w = math.sqrt(max(0.0, 1 + np.trace(rot))) / 2
+    if w < 1e-3:  # near a half turn: go through the largest diagonal
+        i = int(np.argmax(np.diag(rot)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        v = np.zeros(3)
+        v[i] = math.sqrt(max(0.0, 1 + rot[i, i] - rot[j, j] - rot[k, k])) / 2
+        v[j] = (rot[j, i] + rot[i, j]) / (4 * v[i])
+        v[k] = (rot[k, i] + rot[i, k]) / (4 * v[i])
+        w = (rot[k, j] - rot[j, k]) / (4 * v[i])
+        q = np.array([w, *v])
+        return q if w >= 0 else -q
+    return np.array([w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w),
+                     (rot[1, 0] - rot[0, 1]) / (4 * w)])
+
+
+def colmap_pose(c2w_gl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """COLMAP's (qvec [4], tvec [3]) world-to-camera of an OpenGL [4, 4] camera-to-world."""
+    c2w_cv = c2w_gl[:3, :3] * np.array([1.0, -1.0, -1.0])
+    rot = c2w_cv.T
+    return rotation_to_qvec(rot), -rot @ c2w_gl[:3, 3]
+
+
+def write_colmap(sparse: Path, cameras: list, images: list, xyz: np.ndarray, rgb: np.ndarray, binary: bool) -> None:
+    """Write a COLMAP model: cameras [(id, model, w, h, params)], images [(id, qvec, tvec,
+    camera_id, name)] (each with two 2-D points), points [P, 3] and colours [P, 3] uint8."""
+    import struct
+
+    sparse.mkdir(parents=True, exist_ok=True)
+    if binary:
+        data = struct.pack("<Q", len(cameras))
+        for cid, model, w, h, params in cameras:
+            data += struct.pack(f"<iiQQ{len(params)}d", cid, COLMAP_MODEL_IDS[model], w, h, *params)
+        (sparse / "cameras.bin").write_bytes(data)
+        data = struct.pack("<Q", len(images))
+        for iid, q, t, cid, name in images:
+            data += struct.pack("<i7di", iid, *q, *t, cid) + name.encode() + b"\0"
+            data += struct.pack("<Q", 2) + struct.pack("<ddqddq", 1.5, 2.5, 0, 3.5, 4.5, -1)
+        (sparse / "images.bin").write_bytes(data)
+        data = struct.pack("<Q", len(xyz))
+        for k, (p, c) in enumerate(zip(xyz, rgb)):
+            data += struct.pack("<Q3d3BdQ", k, *p, *c, 0.5, 1) + struct.pack("<ii", 1, 0)
+        (sparse / "points3D.bin").write_bytes(data)
+        return
+    lines = ["# Camera list", *(f"{cid} {model} {w} {h} " + " ".join(repr(float(v)) for v in params)
+                                 for cid, model, w, h, params in cameras)]
+    (sparse / "cameras.txt").write_text("\n".join(lines) + "\n")
+    lines = ["# Image list with two lines of data per image:"]
+    for k, (iid, q, t, cid, name) in enumerate(images):
+        lines.append(f"{iid} " + " ".join(repr(float(v)) for v in (*q, *t)) + f" {cid} {name}")
+        lines.append("" if k % 2 else "1.5 2.5 0 3.5 4.5 -1")  # an image without points leaves a blank line
+    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    lines = ["# 3D point list"] + [f"{k} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} 0.5 1 0"
+                                    for k, (p, c) in enumerate(zip(xyz.tolist(), rgb.tolist()))]
+    (sparse / "points3D.txt").write_text("\n".join(lines) + "\n")

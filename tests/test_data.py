@@ -1,7 +1,10 @@
-"""Dataset parsing (NeRF-synthetic, instant-ngp), downscaling and the bad-input messages."""
+"""Dataset parsing (NeRF-synthetic, instant-ngp), lenses, missing frames, downscaling and the
+bad-input messages. COLMAP folders: test_colmap.py; the camera models: test_cameras.py."""
 
 import json
+import logging
 import math
+from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -9,8 +12,10 @@ import pytest
 import torch
 from data_fixtures import fov_to_focal, instant_ngp, nerf_synthetic, random_c2w, write_json
 
-from ngp_warp.cameras import distort, undistort
-from ngp_warp.data import DataError, Split, downscale_image, generate_rays, image_rays, load_scene
+from ngp_warp.data import (DataError, Split, downscale_image, image_rays, load_scene, normalisation_record,
+                           write_normalisation)
+
+FOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "fox"
 
 
 # ---- NeRF-synthetic ---------------------------------------------------------------------------
@@ -68,8 +73,9 @@ def test_instant_ngp_keys_paths_formats_and_holdout(tmp_path):
     for k, i in enumerate(order):
         want = [9.0, 9.0, 3.5, 2.75] if i == 2 else [7.5, 7.0, 4.25, 2.75]
         np.testing.assert_allclose(intr[k], want, rtol=1e-6)
-        np.testing.assert_allclose(dist[k], [-0.2 if i == 2 else 0.05, -0.01, 0.002, -0.001], rtol=1e-6)
-    assert scene.train.has_distortion
+        np.testing.assert_allclose(dist[k], [-0.2 if i == 2 else 0.05, -0.01, 0, 0, 0.002, -0.001], rtol=1e-6)
+    assert scene.train.has_distortion and not scene.train.fisheye
+    torch.testing.assert_close(scene.world_from_scene, torch.eye(4, dtype=torch.float64))
     # default scale 0.33, offset 0.5: the box [0.5 -+ 2]^3 of the unit cube, mapped to the world
     assert scene.occupancy_levels == 3
     np.testing.assert_allclose(scene.aabb.numpy(), [-2 / 0.33] * 3 + [2 / 0.33] * 3, rtol=1e-6)
@@ -176,7 +182,8 @@ BAD = {
     "matrix nan": (lambda p: _edit(p, _set("transform_matrix", [[float("nan")] * 4] * 4)), "frame 1: transform_matrix has non-finite"),
     "singular": (lambda p: _edit(p, _set("transform_matrix", [[1, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
                  "frame 1: transform_matrix is singular"),
-    "missing image": (lambda p: (p / "train" / "r_1.png").unlink(), "frame 1: missing image"),
+    "no image left": (lambda p: [f.unlink() for f in (p / "train").iterdir()],
+                      "transforms_train.json: none of the 3 frames has its image (first missing:"),
     "mixed sizes": (lambda p: iio.imwrite(p / "train" / "r_2.png", np.zeros((4, 4, 4), np.uint8)),
                     "r_2.png: image is 4x4 but the first image (r_0.png) is 8x6"),
     "unreadable image": (lambda p: (p / "test" / "r_0.png").write_bytes(b"not a png at all"), "r_0.png: cannot read image"),
@@ -186,7 +193,16 @@ BAD = {
     "focal text": (lambda p: _edit(p, lambda m: m.update(camera_angle_x="wide")), "camera_angle_x must be a number"),
     "focal negative": (lambda p: _edit(p, _set("fl_x", -3.0)), "frame 1: fl_x must be positive"),
     "angle too wide": (lambda p: _edit(p, lambda m: m.update(camera_angle_x=4.0)), "camera_angle_x must be below a half turn"),
-    "fisheye": (lambda p: _edit(p, lambda m: m.update(is_fisheye=True)), "'is_fisheye' is not supported"),
+    "latlong": (lambda p: _edit(p, lambda m: m.update(latlong=True)), "lens model with 'latlong' is not supported"),
+    "camera model": (lambda p: _edit(p, lambda m: m.update(camera_model="EQUIRECTANGULAR")),
+                     "camera_model 'EQUIRECTANGULAR' is not supported (OPENCV, PINHOLE"),
+    "k4 perspective": (lambda p: _edit(p, _set("k4", 0.01)), "frame 1: k4 is only used by OPENCV_FISHEYE"),
+    "p1 fisheye": (lambda p: _edit(p, lambda m: m.update(camera_model="OPENCV_FISHEYE", p1=0.01)),
+                   "OPENCV_FISHEYE has no tangential terms"),
+    "mixed lenses": (lambda p: _edit(p, _set("is_fisheye", True, frame=2)),
+                     "frame 2: mixes fisheye and perspective cameras"),
+    "bad world_from_scene": (lambda p: _edit(p, lambda m: m.update(world_from_scene=[[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 1, 0, 1]])),
+                             "world_from_scene must be a 4x4 matrix with last row 0 0 0 1"),
     "bad json": (lambda p: (p / "transforms_train.json").write_text('{"frames": [\n  {"file_path": }\n]}'),
                  "transforms_train.json: not valid JSON (Expecting value at line 2, column 17)"),
     "json list": (lambda p: (p / "transforms_train.json").write_text("[1, 2]"), "expected a JSON object"),
@@ -213,7 +229,7 @@ def test_bad_paths_and_arguments(tmp_path, case):
     if case == "missing folder":
         target, message = tmp_path / "nope", "nope: no such file or folder"
     elif case == "empty folder":
-        message = "no transforms_train.json or transforms.json in this folder"
+        message = "no transforms_train.json, transforms.json or COLMAP sparse/0/ in this folder"
     elif case == "single frame":
         instant_ngp(tmp_path, n=1)
         message = "transforms.json: only 1 frame"
@@ -234,11 +250,14 @@ def test_bad_paths_and_arguments(tmp_path, case):
 def test_split_validates_and_moves():
     n = 2
     good = dict(images=torch.zeros(n, 4, 5, 3, dtype=torch.uint8), c2w=torch.zeros(n, 3, 4),
-                intrinsics=torch.ones(n, 4), distortion=torch.zeros(n, 4), names=["a", "b"], width=5, height=4)
+                intrinsics=torch.ones(n, 4), distortion=torch.zeros(n, 6), names=["a", "b"], width=5, height=4)
     s = Split(**good).to("cpu")
-    assert len(s) == 2 and not s.has_distortion
+    assert len(s) == 2 and not s.has_distortion and s.lens_model == 0
+    fish = Split(**good, fisheye=True).to("cpu")
+    assert fish.fisheye and fish.has_distortion and fish.lens_model == 2  # equidistant even with zeros
     for key, bad in (("images", torch.zeros(n, 5, 4, 3, dtype=torch.uint8)), ("c2w", torch.zeros(n, 4, 4)),
                      ("intrinsics", torch.ones(n, 4, dtype=torch.float64)), ("names", ["a"]),
+                     ("distortion", torch.zeros(n, 4)),
                      ("images", torch.zeros(n, 4, 5, 2, dtype=torch.uint8))):
         with pytest.raises(ValueError):
             Split(**{**good, key: bad})
@@ -265,82 +284,63 @@ def test_random_cameras_fixture_is_valid():
     np.testing.assert_allclose(c2w[:3, 2], c2w[:3, 3] / 4.0, atol=1e-12)  # +z points away from the origin
 
 
-def _random_rotation(n, generator=None):
-    q, _ = torch.linalg.qr(torch.randn(n, 3, 3, dtype=torch.float64, generator=generator))
-    return q
-
-
-def _cameras(n, dtype=torch.float32):
-    c2w = torch.cat([_random_rotation(n), torch.randn(n, 3, 1, dtype=torch.float64)], dim=2).to(dtype)
-    intr = torch.tensor([[50.0, 45.0, 16.0, 12.0]], dtype=dtype).repeat(n, 1)
-    return c2w, intr
-
-
-def test_generate_rays_centre_pixel_looks_down_minus_z_opengl_axes():
-    c2w, intr = _cameras(5)
-    px = torch.full((5,), 15)  # centre of pixel 15 is 15.5 ... shifted so the ray hits cx exactly
-    intr[:, 2] = 15.5
-    intr[:, 3] = 11.5
-    o, d = generate_rays(c2w, intr, None, px, torch.full((5,), 11))
-    torch.testing.assert_close(o, c2w[:, :, 3])
-    torch.testing.assert_close(d, -c2w[:, :, 2])
-    # one pixel right: towards camera +x; one pixel down: towards camera -y
-    _, right = generate_rays(c2w, intr, None, px + 1, torch.full((5,), 11))
-    _, down = generate_rays(c2w, intr, None, px, torch.full((5,), 12))
-    cam_right = torch.einsum("bji,bj->bi", c2w[:, :, :3], right)
-    cam_down = torch.einsum("bji,bj->bi", c2w[:, :, :3], down)
-    assert (cam_right[:, 0] > 0).all() and cam_right[:, 1].abs().max() < 1e-6
-    assert (cam_down[:, 1] < 0).all() and cam_down[:, 0].abs().max() < 1e-6
-    torch.testing.assert_close(cam_right[:, 0] / -cam_right[:, 2], torch.full((5,), 1 / 50.0))
-
-
-def test_generate_rays_zero_distortion_is_identity_and_dtype_follows_c2w():
-    for dtype in (torch.float32, torch.float64):
-        c2w, intr = _cameras(64, dtype)
-        px, py = torch.randint(0, 32, (64,)), torch.randint(0, 24, (64,))
-        o1, d1 = generate_rays(c2w, intr, None, px, py)
-        o2, d2 = generate_rays(c2w, intr, torch.zeros(64, 4, dtype=dtype), px, py)
-        assert d1.dtype == dtype and torch.equal(o1, o2) and torch.equal(d1, d2)
-        torch.testing.assert_close(d1.norm(dim=-1), torch.ones(64, dtype=dtype))
-
-
-def test_undistort_inverts_distort():
-    g = torch.Generator().manual_seed(3)
-    n = 500
-    x, y = (torch.rand(2, n, dtype=torch.float64, generator=g) - 0.5) * 1.2
-    dist = torch.stack([torch.rand(n, dtype=torch.float64, generator=g) * 0.4 - 0.2,
-                        torch.rand(n, dtype=torch.float64, generator=g) * 0.1 - 0.05,
-                        torch.rand(n, dtype=torch.float64, generator=g) * 0.02 - 0.01,
-                        torch.rand(n, dtype=torch.float64, generator=g) * 0.02 - 0.01], -1)
-    xd, yd = distort(x, y, dist)
-    assert (xd - x).abs().max() > 1e-2  # the distortion is not negligible
-    ux, uy = undistort(xd, yd, dist)
-    torch.testing.assert_close(ux, x, atol=1e-10, rtol=0)
-    torch.testing.assert_close(uy, y, atol=1e-10, rtol=0)
-
-
-def test_distorted_rays_project_back_to_their_pixels():
-    c2w, intr = _cameras(200, torch.float64)
-    dist = torch.tensor([[-0.15, 0.03, 0.004, -0.003]], dtype=torch.float64).repeat(200, 1)
-    px, py = torch.randint(0, 32, (200,)), torch.randint(0, 24, (200,))
-    _, d = generate_rays(c2w, intr, dist, px, py)
-    cam = torch.einsum("bji,bj->bi", c2w[:, :, :3], d)  # R^T d
-    x, y = cam[:, 0] / -cam[:, 2], -cam[:, 1] / -cam[:, 2]
-    xd, yd = distort(x, y, dist)
-    torch.testing.assert_close(xd * intr[:, 0] + intr[:, 2], px.double() + 0.5, atol=1e-8, rtol=0)
-    torch.testing.assert_close(yd * intr[:, 1] + intr[:, 3], py.double() + 0.5, atol=1e-8, rtol=0)
-
-
-def test_generate_rays_rejects_bad_shapes():
-    c2w, intr = _cameras(4)
-    px = torch.zeros(4, dtype=torch.long)
-    for args in ((c2w[:, :2], intr, None, px, px), (c2w, intr[:3], None, px, px), (c2w, intr, None, px[:3], px),
-                 (c2w, intr, torch.zeros(4, 5), px, px), (c2w.long(), intr, None, px, px), (c2w, intr, None, px, "y")):
-        with pytest.raises(ValueError):
-            generate_rays(*args)
-
-
 def test_aabb_scale_beyond_the_cascades_is_refused(tmp_path):
     instant_ngp(tmp_path, n=3, aabb_scale=2**16)
     with pytest.raises(DataError, match="aabb_scale 65536 is larger than 32768"):
         load_scene(tmp_path)
+
+
+# ---- lenses, missing frames, the normalisation record ------------------------------------------
+
+def test_lens_keys_camera_model_and_is_fisheye(tmp_path):
+    meta, _ = instant_ngp(tmp_path, n=4, k3=0.003)
+    scene = load_scene(tmp_path)
+    assert not scene.train.fisheye and scene.train.lens_model == 1
+    np.testing.assert_allclose(scene.train.distortion[0].numpy(), [0.05, -0.01, 0.003, 0, 0.002, -0.001], rtol=1e-6)
+    for lens in ({"camera_model": "OPENCV_FISHEYE"}, {"is_fisheye": True}):
+        instant_ngp(tmp_path, n=4, p1=0.0, p2=0.0, k3=0.003, k4=-0.002, **lens)
+        scene = load_scene(tmp_path)
+        assert scene.train.fisheye and scene.test.fisheye and scene.train.lens_model == 2
+        np.testing.assert_allclose(scene.test.distortion[0].numpy(), [0.05, -0.01, 0.003, -0.002, 0, 0], rtol=1e-6)
+    instant_ngp(tmp_path, n=4, camera_model="PINHOLE", k1=0.0, k2=0.0, p1=0.0, p2=0.0)
+    assert load_scene(tmp_path).train.lens_model == 0
+
+
+def test_frames_whose_image_is_missing_are_skipped_with_one_warning(tmp_path, caplog):
+    meta, _ = instant_ngp(tmp_path, n=9)
+    for i in (2, 5, 6):
+        next((tmp_path / "images").glob(f"{i:04d}.*")).unlink()
+    with caplog.at_level(logging.WARNING, logger="ngp_warp.data"):
+        scene = load_scene(tmp_path, holdout_every=3)
+    assert len(caplog.records) == 1
+    assert "transforms.json: skipped 3 of 9 frames whose image is missing (first: " in caplog.records[0].message
+    names = [Path(n).stem for n in scene.test.names + scene.train.names]
+    assert sorted(names) == ["0000", "0001", "0003", "0004", "0007", "0008"]
+    assert [Path(n).stem for n in scene.test.names] == ["0000", "0004"]  # every 3rd of the frames left
+
+
+def test_normalisation_record_is_written_whole(tmp_path):
+    meta, _ = instant_ngp(tmp_path, n=3)
+    m = [[0.0, -2.0, 0.0, 1.0], [2.0, 0.0, 0.0, -3.0], [0.0, 0.0, 2.0, 0.5], [0.0, 0.0, 0.0, 1.0]]
+    write_json(tmp_path / "transforms.json", {**meta, "world_from_scene": m})
+    scene = load_scene(tmp_path)
+    np.testing.assert_array_equal(scene.world_from_scene.numpy(), m)
+    path = write_normalisation(tmp_path, scene)
+    record = json.loads(path.read_text())
+    assert record == normalisation_record(scene) and record["world_from_scene"] == m
+    assert record["scale"] == pytest.approx(2.0) and record["source"] == "instant-ngp"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "normalisation.json", "transforms.json"]
+
+
+@pytest.mark.skipif(not (FOX / "transforms.json").is_file(), reason="instant-ngp's fox sample is not in ../shared/data/fox")
+def test_instant_ngp_fox_loads_as_shipped(caplog):
+    with caplog.at_level(logging.WARNING, logger="ngp_warp.data"):
+        scene = load_scene(FOX, downscale=8)
+    assert len(caplog.records) == 1 and "skipped 17 of 67 frames whose image is missing" in caplog.records[0].message
+    assert len(scene.train) + len(scene.test) == 50 and scene.source == "instant-ngp"
+    assert (scene.train.width, scene.train.height) == (135, 240)
+    assert scene.train.lens_model == 1 and scene.occupancy_levels == 3
+    for split in (scene.train, scene.test):
+        o, d = image_rays(split, len(split) - 1)
+        assert torch.isfinite(o).all() and torch.isfinite(d).all()
+        torch.testing.assert_close(d.norm(dim=-1), torch.ones(len(d)))
