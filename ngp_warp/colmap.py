@@ -71,12 +71,13 @@ class ColmapImage:
 @dataclass
 class ColmapModel:
     """A sparse model: cameras by id, images sorted by name, points ``xyz`` [P, 3] float64 and
-    ``rgb`` [P, 3] uint8."""
+    ``rgb`` [P, 3] uint8; ``sparse_dir`` the folder it was read from (for messages)."""
 
     cameras: dict[int, ColmapCamera]
     images: list[ColmapImage]
     points_xyz: np.ndarray
     points_rgb: np.ndarray
+    sparse_dir: Path | None = None
 
 
 # ---- binary --------------------------------------------------------------------------------
@@ -254,7 +255,7 @@ def read_colmap_model(sparse_dir: Path) -> ColmapModel:
         raise DataError(f"{paths[1]}: the model has no registered images")
     if not np.isfinite(xyz).all():
         raise DataError(f"{paths[2]}: non-finite point coordinates")
-    return ColmapModel(by_id, sorted(images, key=lambda im: im.name), xyz, rgb)
+    return ColmapModel(by_id, sorted(images, key=lambda im: im.name), xyz, rgb, sparse_dir)
 
 
 def camera_to_world(image: ColmapImage) -> np.ndarray:
@@ -270,12 +271,12 @@ def camera_to_world(image: ColmapImage) -> np.ndarray:
     return c2w
 
 
-def camera_keys(camera: ColmapCamera) -> dict:
+def camera_keys(camera: ColmapCamera, where: str = "COLMAP model") -> dict:
     """instant-ngp camera keys of a COLMAP camera: ``fl_x fl_y cx cy w h``, ``camera_model``
     (OPENCV or OPENCV_FISHEYE, the latter with instant-ngp's ``is_fisheye``) and the distortion
     coefficients its model has."""
     if camera.model not in SUPPORTED_MODELS:
-        raise DataError(f"COLMAP camera {camera.camera_id}: camera model {camera.model} is not supported "
+        raise DataError(f"{where}: camera {camera.camera_id}: camera model {camera.model} is not supported "
                         f"({', '.join(SUPPORTED_MODELS)} are)")
     v = dict(zip(SUPPORTED_MODELS[camera.model], camera.params.tolist()))
     keys = {"camera_model": "OPENCV_FISHEYE" if camera.model == "OPENCV_FISHEYE" else "OPENCV",
@@ -307,7 +308,7 @@ def colmap_to_transforms(model: ColmapModel, image_dir_rel: str = "images", aabb
     c2w = np.stack([camera_to_world(im) for im in model.images])
     scene_from_world, world_from_scene, box = normalise_scene(c2w, model.points_xyz, aabb_scale)
     rotation = scene_from_world[:3, :3] / np.cbrt(np.linalg.det(scene_from_world[:3, :3]))
-    cams = {cid: camera_keys(c) for cid, c in model.cameras.items()
+    cams = {cid: camera_keys(c, str(model.sparse_dir or "COLMAP model")) for cid, c in model.cameras.items()
             if any(im.camera_id == cid for im in model.images)}
     shared = len({tuple(sorted(k.items())) for k in cams.values()}) == 1
     meta = dict(next(iter(cams.values()))) if shared else {}

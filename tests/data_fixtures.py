@@ -145,3 +145,41 @@ def write_colmap(sparse: Path, cameras: list, images: list, xyz: np.ndarray, rgb
     lines = ["# 3D point list"] + [f"{k} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} 0.5 1 0"
                                     for k, (p, c) in enumerate(zip(xyz.tolist(), rgb.tolist()))]
     (sparse / "points3D.txt").write_text("\n".join(lines) + "\n")
+
+
+def colmap_scene(root: Path, model: str = "OPENCV", params=None, binary: bool = True, n: int = 5,
+                 size: tuple[int, int] = (12, 10), seed: int = 0) -> dict:
+    """A COLMAP folder: sparse/0 (one camera of ``model``, n images on a sphere around a point
+    off the origin, in a frame rotated away from z-up, 40 points) and images/ PNGs of ``size``.
+    Returns {"cameras", "images", "xyz", "c2w" (OpenGL [n, 4, 4] in COLMAP's frame)}."""
+    rng = np.random.default_rng(seed)
+    w, h = size
+    params = params if params is not None else COLMAP_TEST_PARAMS[model]
+    tilt = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    tilt *= np.linalg.det(tilt)
+    c2w = []
+    for _ in range(n):
+        m = random_c2w(rng, radius=2.5)
+        m[:3] = tilt @ m[:3]
+        m[:3, 3] += [3.0, -1.0, 0.5]
+        c2w.append(m)
+    images = [(10 + i, *colmap_pose(m), 1, f"frame_{i:02d}.png") for i, m in enumerate(c2w)]
+    xyz = rng.normal(size=(40, 3)) * 0.5 + [3.0, -1.0, 0.5]
+    rgb = rng.integers(0, 256, (40, 3), dtype=np.uint8)
+    cameras = [(1, model, w, h, params)]
+    write_colmap(root / "sparse" / "0", cameras, images, xyz, rgb, binary)
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    for _, _, _, _, name in images:
+        iio.imwrite(root / "images" / name, random_image(rng, h, w, 3))
+    return {"cameras": cameras, "images": images, "xyz": xyz, "c2w": np.stack(c2w)}
+
+
+# parameters of each supported COLMAP model for a 12 x 10 image, in COLMAP's order
+COLMAP_TEST_PARAMS = {
+    "SIMPLE_PINHOLE": [11.0, 6.2, 4.9],
+    "PINHOLE": [11.0, 10.0, 6.2, 4.9],
+    "SIMPLE_RADIAL": [11.0, 6.2, 4.9, -0.08],
+    "RADIAL": [11.0, 6.2, 4.9, -0.08, 0.02],
+    "OPENCV": [11.0, 10.0, 6.2, 4.9, -0.08, 0.02, 0.004, -0.003],
+    "OPENCV_FISHEYE": [7.0, 6.5, 6.2, 4.9, 0.05, -0.01, 0.003, -0.001],
+}

@@ -170,6 +170,7 @@ def _set(key, value, frame=1):
     return change
 
 
+BAD_LAST_ROW = [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 1, 0, 1]]
 BAD = {
     "no frames key": (lambda p: _edit(p, lambda m: m.pop("frames")), "transforms_train.json: no 'frames' list"),
     "zero frames": (lambda p: _edit(p, lambda m: m.update(frames=[])), "transforms_train.json: no frames"),
@@ -201,7 +202,7 @@ BAD = {
                    "OPENCV_FISHEYE has no tangential terms"),
     "mixed lenses": (lambda p: _edit(p, _set("is_fisheye", True, frame=2)),
                      "frame 2: mixes fisheye and perspective cameras"),
-    "bad world_from_scene": (lambda p: _edit(p, lambda m: m.update(world_from_scene=[[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 1, 0, 1]])),
+    "bad world_from_scene": (lambda p: _edit(p, lambda m: m.update(world_from_scene=BAD_LAST_ROW)),
                              "world_from_scene must be a 4x4 matrix with last row 0 0 0 1"),
     "bad json": (lambda p: (p / "transforms_train.json").write_text('{"frames": [\n  {"file_path": }\n]}'),
                  "transforms_train.json: not valid JSON (Expecting value at line 2, column 17)"),
@@ -332,7 +333,9 @@ def test_normalisation_record_is_written_whole(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "normalisation.json", "transforms.json"]
 
 
-@pytest.mark.skipif(not (FOX / "transforms.json").is_file(), reason="instant-ngp's fox sample is not in ../shared/data/fox")
+@pytest.mark.slow
+@pytest.mark.skipif(not (FOX / "transforms.json").is_file(),
+                    reason="instant-ngp's fox sample is not in ../shared/data/fox")
 def test_instant_ngp_fox_loads_as_shipped(caplog):
     with caplog.at_level(logging.WARNING, logger="ngp_warp.data"):
         scene = load_scene(FOX, downscale=8)
