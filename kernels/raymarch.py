@@ -2,6 +2,9 @@
 
 With fixed steps a ray's steps are split into segments of ``seg_steps`` steps, each marched by
 its own thread (the last one runs to the ray's end); with cone steps one thread marches a ray.
+The kernel is built from the helpers below: the ray's interval (:func:`ray_span`), the step
+size (:func:`step_at`), the cell lookup (:func:`grid_cell`), the walk through an occupied cell
+(:func:`take_cell`) and the jump over empty space (:func:`skip_empty`).
 Sampling carries no gradient, so there is no backward kernel here.
 """
 
@@ -17,6 +20,27 @@ _FAR = wp.constant(1.0e30)
 _MAX_ITERS = wp.constant(1 << 24)
 # A step mask with every bit set means "march again" (see march_rays).
 _REMARCH = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
+
+
+@wp.struct
+class MarchConfig:
+    """The march's settings: grid (res, levels, n_mips, mip_cells), ray interval and steps, the
+    per-ray cap, stratification and the segments per ray (one value per batch, so the host
+    builds it once per configuration)."""
+
+    res: int
+    levels: int
+    n_mips: int
+    mip_cells: int
+    near: float
+    far: float
+    step: float
+    cone: float
+    max_step: float
+    max_per_ray: int
+    stratified: int
+    n_seg: int
+    seg_steps: int
 
 
 @wp.func
@@ -36,6 +60,34 @@ def ray_box(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
 
 
 @wp.func
+def ray_span(o: wp.vec3, d: wp.vec3, c: wp.vec3, h: wp.vec3, cfg: MarchConfig) -> wp.vec2:
+    """[t0, t1] = [max(near, t_enter), min(far, t_exit)] of the ray with the coarsest cascade's
+    box c ± h·2^(levels−1); t0 ≥ t1 when the ray misses it."""
+    outer = h * float(1 << (cfg.levels - 1))
+    hit = ray_box(o, d, c - outer, c + outer)
+    return wp.vec2(wp.max(hit[0], cfg.near), wp.min(hit[1], cfg.far))
+
+
+@wp.func
+def step_at(t: float, step: float, cone: float, max_step: float) -> float:
+    """Δt = step (cone = 0) or clamp(t·cone, step, max_step)."""
+    dt = step
+    if cone > 0.0:
+        dt = wp.clamp(t * cone, step, max_step)
+    return dt
+
+
+@wp.func
+def march_start(t0: float, dt: float, stratified: int, seed: int, r: int) -> float:
+    """t_s = t0 + u·Δt with u ~ U[0, 1) drawn per ray r when stratified, else t0."""
+    t_s = t0
+    if stratified != 0:
+        state = wp.rand_init(seed, r)
+        t_s = t0 + wp.randf(state) * dt
+    return t_s
+
+
+@wp.func
 def reciprocal(v: wp.vec3) -> wp.vec3:
     """Componentwise 1/v, 0 where v = 0 (callers branch on the sign of v)."""
     r = wp.vec3(0.0)
@@ -43,6 +95,22 @@ def reciprocal(v: wp.vec3) -> wp.vec3:
         if v[a] != 0.0:
             r[a] = 1.0 / v[a]
     return r
+
+
+@wp.func
+def grid_cell(p: wp.vec3, c: wp.vec3, h: wp.vec3, inv_h: wp.vec3, levels: int, res: int):
+    """The cell holding p: (level, ijk, lower corner of the level's box c − h·2^level, 2^level),
+    the level being the finest cascade containing p; ijk is clamped to the grid."""
+    level = cascade_of(p, c, h, levels)
+    scale = float(1 << level)
+    lower = c - h * scale
+    f = wp.cw_mul(p - lower, inv_h) * (0.5 * float(res) / scale)
+    ijk = wp.vec3i(
+        wp.clamp(int(wp.floor(f[0])), 0, res - 1),
+        wp.clamp(int(wp.floor(f[1])), 0, res - 1),
+        wp.clamp(int(wp.floor(f[2])), 0, res - 1),
+    )
+    return level, ijk, lower, scale
 
 
 @wp.func
@@ -58,12 +126,19 @@ def cell_exit(o: wp.vec3, d: wp.vec3, inv_d: wp.vec3, lower: wp.vec3, size: wp.v
 
 
 @wp.func
-def step_at(t: float, step: float, cone: float, max_step: float) -> float:
-    """Δt = step (cone = 0) or clamp(t·cone, step, max_step)."""
-    dt = step
-    if cone > 0.0:
-        dt = wp.clamp(t * cone, step, max_step)
-    return dt
+def block_exit(o: wp.vec3, d: wp.vec3, inv_d: wp.vec3, lower: wp.vec3, cell_size: wp.vec3, corner: wp.vec3i,
+               extent: wp.vec3) -> float:
+    """Ray parameter at which o + t·d leaves the box of ``extent`` whose lower corner is that of
+    cell ``corner`` of a level with lower corner ``lower`` and cells of ``cell_size``."""
+    box_lo = lower + wp.cw_mul(wp.vec3(float(corner[0]), float(corner[1]), float(corner[2])), cell_size)
+    return cell_exit(o, d, inv_d, box_lo, extent)
+
+
+@wp.func
+def first_step_past(t_leave: float, t_s: float, inv_dt: float) -> int:
+    """Fixed steps t_k = t_s + k·Δt: the first k whose midpoint t_k + Δt/2 reaches t_leave,
+    ⌈(t_leave − t_s)/Δt − 1/2⌉ (at most _MAX_ITERS)."""
+    return int(wp.min(wp.ceil((t_leave - t_s) * inv_dt - 0.5), float(_MAX_ITERS)))
 
 
 @wp.func
@@ -100,25 +175,136 @@ def write_sample(
     directions[j] = d
 
 
-@wp.struct
-class MarchConfig:
-    """The march's settings: grid (res, levels, n_mips, mip_cells), ray interval and steps, the
-    per-ray cap, stratification and the segments per ray (one value per batch, so the host
-    builds it once per configuration)."""
+@wp.func
+def mark_step(mask: wp.uint64, bit: int) -> wp.uint64:
+    """mask with ``bit`` set, or _REMARCH when the bit lies past 63."""
+    if bit < 64:
+        return mask | (wp.uint64(1) << wp.uint64(bit))
+    return _REMARCH
 
-    res: int
-    levels: int
-    n_mips: int
-    mip_cells: int
-    near: float
-    far: float
-    step: float
-    cone: float
-    max_step: float
-    max_per_ray: int
-    stratified: int
-    n_seg: int
-    seg_steps: int
+
+@wp.func
+def take_cell(
+    k: int, k_stop: int, t: float, t_s: float, dt: float, t1: float, cone: float,
+    n: int, cap: int, fill: int, masked: bool, mask: wp.uint64, k_first: int, base: int,
+    r: int, o: wp.vec3, d: wp.vec3,
+    ray_indices: wp.array(dtype=wp.int64),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    positions: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+):
+    """Keep steps k .. k_stop − 1 (all in one occupied cell) while t < t1 and n < cap: the fill
+    writes them as samples base + n onwards, the count with ``masked`` sets their bits
+    k − k_first in ``mask``. Returns the next (k, t, n, mask)."""
+    while k < k_stop and t < t1 and n < cap:
+        t_end = wp.min(t + dt, t1)
+        if fill != 0:
+            write_sample(base + n, r, o, d, t, t_end, ray_indices, t_starts, t_ends, positions, directions)
+        elif masked:
+            mask = mark_step(mask, k - k_first)
+        n += 1
+        k += 1
+        if cone > 0.0:
+            t = t + dt
+        else:
+            t = t_s + float(k) * dt
+    return k, t, n, mask
+
+
+@wp.func
+def skip_empty(k: int, t: float, t_s: float, dt: float, inv_dt: float, t1: float, t_leave: float,
+               cfg: MarchConfig, iters: int):
+    """Jump from the empty step k at t to the first step whose midpoint lies past t_leave (the
+    exit of the empty block): fixed steps in one go, cone steps one at a time (counted in
+    iters). Returns the next (k, t, iters)."""
+    if cfg.cone > 0.0:
+        t = t + dt
+        while t < t1 and t + 0.5 * step_at(t, cfg.step, cfg.cone, cfg.max_step) < t_leave and iters < _MAX_ITERS:
+            t = t + step_at(t, cfg.step, cfg.cone, cfg.max_step)
+            iters += 1
+    else:
+        k = wp.max(k + 1, first_step_past(t_leave, t_s, inv_dt))
+        t = t_s + float(k) * dt
+    return k, t, iters
+
+
+@wp.func
+def replay_mask(
+    mask: wp.uint64, k: int, t_s: float, step: float, t1: float, cap: int, base: int,
+    r: int, o: wp.vec3, d: wp.vec3,
+    ray_indices: wp.array(dtype=wp.int64),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    positions: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+) -> int:
+    """Fill from the count's step mask: step k + b for each set bit b, at most cap samples from
+    base on. Returns the samples written."""
+    n = int(0)
+    while mask != wp.uint64(0) and n < cap:
+        if (mask & wp.uint64(1)) != wp.uint64(0):
+            t = t_s + float(k) * step
+            write_sample(base + n, r, o, d, t, wp.min(t + step, t1),
+                         ray_indices, t_starts, t_ends, positions, directions)
+            n += 1
+        mask = mask >> wp.uint64(1)
+        k += 1
+    return n
+
+
+@wp.func
+def march_segment(
+    k: int, k_end: int, t0: float, t1: float, cap: int, fill: int, masked: bool, base: int,
+    r: int, o: wp.vec3, d: wp.vec3, c: wp.vec3, h: wp.vec3,
+    bitfield: wp.array(dtype=wp.uint8),
+    mips: wp.array(dtype=wp.uint8),
+    cfg: MarchConfig,
+    seed: int,
+    ray_indices: wp.array(dtype=wp.int64),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    positions: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+):
+    """March steps k .. k_end − 1 of ray r over [t0, t1] (see march_rays): keep the steps in
+    occupied cells, jump over empty blocks. Returns (samples kept, step mask of the count)."""
+    step = cfg.step
+    cone = cfg.cone
+    res = cfg.res
+    dt = step_at(t0, step, cone, cfg.max_step)
+    t_s = march_start(t0, dt, cfg.stratified, seed, r)
+    t = t_s
+    if k > 0:
+        t = t_s + float(k) * dt
+    inv_d = reciprocal(d)
+    inv_h = reciprocal(h)
+    inv_dt = 1.0 / step
+    k_first = k
+    n = int(0)
+    mask = wp.uint64(0)
+    iters = int(0)
+    while t < t1 and k < k_end and n < cap and iters < _MAX_ITERS:
+        iters += 1
+        dt = step_at(t, step, cone, cfg.max_step)
+        t_end = wp.min(t + dt, t1)
+        level, ijk, lower, scale = grid_cell(o + d * (0.5 * (t + t_end)), c, h, inv_h, cfg.levels, res)
+        if is_occupied(bitfield, cell_id(level, ijk, res)):
+            # fixed steps: every step whose midpoint lies before the cell's exit is in the cell
+            k_stop = k + 1
+            if cone == 0.0:
+                size = h * (2.0 * scale / float(res))
+                t_leave = block_exit(o, d, inv_d, lower, size, ijk, size)
+                k_stop = wp.min(wp.max(k + 1, first_step_past(t_leave, t_s, inv_dt)), k_end)
+            k, t, n, mask = take_cell(k, k_stop, t, t_s, dt, t1, cone, n, cap, fill, masked, mask, k_first, base,
+                                      r, o, d, ray_indices, t_starts, t_ends, positions, directions)
+        else:
+            mip = empty_mip(mips, level * cfg.mip_cells, ijk, res, cfg.n_mips)
+            size = h * (2.0 * scale / float(res))
+            block = wp.vec3i((ijk[0] >> mip) << mip, (ijk[1] >> mip) << mip, (ijk[2] >> mip) << mip)
+            t_leave = block_exit(o, d, inv_d, lower, size, block, size * float(1 << mip))
+            k, t, iters = skip_empty(k, t, t_s, dt, inv_dt, t1, t_leave, cfg, iters)
+    return n, mask
 
 
 # Per ray: [t0, t1] = [max(near, t_enter), min(far, t_exit)] of the outermost cascade box.
@@ -164,19 +350,7 @@ def march_rays(
     directions: wp.array(dtype=wp.vec3),
     step_masks: wp.array(dtype=wp.uint64),
 ):
-    res = cfg.res
-    levels = cfg.levels
-    n_mips = cfg.n_mips
-    mip_cells = cfg.mip_cells
-    near = cfg.near
-    far = cfg.far
-    step = cfg.step
-    cone = cfg.cone
-    max_step = cfg.max_step
-    max_per_ray = cfg.max_per_ray
-    stratified = cfg.stratified
     n_seg = cfg.n_seg
-    seg_steps = cfg.seg_steps
     i = first + wp.tid()
     r = i // n_seg
     seg = i - r * n_seg
@@ -184,17 +358,16 @@ def march_rays(
     d = rays_d[r]
     c = box_center(aabb)
     h = box_half(aabb)
-    outer = h * float(1 << (levels - 1))
-    hit = ray_box(o, d, c - outer, c + outer)
-    t0 = wp.max(hit[0], near)
-    t1 = wp.min(hit[1], far)
+    span = ray_span(o, d, c, h, cfg)
+    t0 = span[0]
+    t1 = span[1]
 
-    k = seg * seg_steps
-    k_end = k + seg_steps
+    k = seg * cfg.seg_steps
+    k_end = k + cfg.seg_steps
     if seg == n_seg - 1:
         k_end = _MAX_ITERS
     base = int(0)
-    cap = max_per_ray
+    cap = cfg.max_per_ray
     if fill != 0:
         base = int(seg_offsets[i])
         cap = int(seg_offsets[i + 1]) - base
@@ -204,91 +377,18 @@ def march_rays(
             ray_offsets[r + 1] = int(seg_offsets[i + 1])
 
     n = int(0)
-    k_first = k
     mask = wp.uint64(0)
     masked = step_masks.shape[0] > 0
     if masked and fill != 0:
         mask = step_masks[i]
     live = t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0
     if live and masked and fill != 0 and mask != _REMARCH:
-        t_s = t0
-        if stratified != 0:
-            state = wp.rand_init(seed, r)
-            t_s = t0 + wp.randf(state) * step
-        while mask != wp.uint64(0) and n < cap:
-            if (mask & wp.uint64(1)) != wp.uint64(0):
-                t = t_s + float(k) * step
-                write_sample(base + n, r, o, d, t, wp.min(t + step, t1),
-                             ray_indices, t_starts, t_ends, positions, directions)
-                n += 1
-            mask = mask >> wp.uint64(1)
-            k += 1
+        t_s = march_start(t0, cfg.step, cfg.stratified, seed, r)
+        n = replay_mask(mask, k, t_s, cfg.step, t1, cap, base, r, o, d,
+                        ray_indices, t_starts, t_ends, positions, directions)
     elif live:
-        state = wp.rand_init(seed, r)
-        dt = step_at(t0, step, cone, max_step)
-        t_s = t0
-        if stratified != 0:
-            t_s = t0 + wp.randf(state) * dt
-        t = t_s
-        if k > 0:
-            t = t_s + float(k) * dt
-        inv_d = reciprocal(d)
-        inv_h = reciprocal(h)
-        inv_dt = 1.0 / step
-        iters = int(0)
-        while t < t1 and k < k_end and n < cap and iters < _MAX_ITERS:
-            iters += 1
-            dt = step_at(t, step, cone, max_step)
-            t_end = wp.min(t + dt, t1)
-            p = o + d * (0.5 * (t + t_end))
-            level = cascade_of(p, c, h, levels)
-            scale = float(1 << level)
-            lower = c - h * scale
-            f = wp.cw_mul(p - lower, inv_h) * (0.5 * float(res) / scale)
-            ijk = wp.vec3i(
-                wp.clamp(int(wp.floor(f[0])), 0, res - 1),
-                wp.clamp(int(wp.floor(f[1])), 0, res - 1),
-                wp.clamp(int(wp.floor(f[2])), 0, res - 1),
-            )
-            if is_occupied(bitfield, cell_id(level, ijk, res)):
-                # fixed steps: every step whose midpoint lies before the cell's exit is in the cell
-                k_stop = k + 1
-                if cone == 0.0:
-                    size = h * (2.0 * scale / float(res))
-                    cell_lo = lower + wp.cw_mul(wp.vec3(float(ijk[0]), float(ijk[1]), float(ijk[2])), size)
-                    t_leave = cell_exit(o, d, inv_d, cell_lo, size)
-                    last = wp.min(wp.ceil((t_leave - t_s) * inv_dt - 0.5), float(_MAX_ITERS))
-                    k_stop = wp.min(wp.max(k + 1, int(last)), k_end)
-                while k < k_stop and t < t1 and n < cap:
-                    t_end = wp.min(t + dt, t1)
-                    if fill != 0:
-                        write_sample(base + n, r, o, d, t, t_end, ray_indices, t_starts, t_ends, positions, directions)
-                    elif masked:
-                        if k - k_first < 64:
-                            mask = mask | (wp.uint64(1) << wp.uint64(k - k_first))
-                        else:
-                            mask = _REMARCH
-                    n += 1
-                    k += 1
-                    if cone > 0.0:
-                        t = t + dt
-                    else:
-                        t = t_s + float(k) * dt
-            else:
-                mip = empty_mip(mips, level * mip_cells, ijk, res, n_mips)
-                size = h * (2.0 * scale / float(res))
-                block = wp.vec3i((ijk[0] >> mip) << mip, (ijk[1] >> mip) << mip, (ijk[2] >> mip) << mip)
-                cell_lo = lower + wp.cw_mul(wp.vec3(float(block[0]), float(block[1]), float(block[2])), size)
-                t_leave = cell_exit(o, d, inv_d, cell_lo, size * float(1 << mip))
-                if cone > 0.0:
-                    t = t + dt
-                    while t < t1 and t + 0.5 * step_at(t, step, cone, max_step) < t_leave and iters < _MAX_ITERS:
-                        t = t + step_at(t, step, cone, max_step)
-                        iters += 1
-                else:
-                    target = wp.min(wp.ceil((t_leave - t_s) * inv_dt - 0.5), float(_MAX_ITERS))
-                    k = wp.max(k + 1, int(target))
-                    t = t_s + float(k) * dt
+        n, mask = march_segment(k, k_end, t0, t1, cap, fill, masked, base, r, o, d, c, h, bitfield, mips, cfg, seed,
+                                ray_indices, t_starts, t_ends, positions, directions)
     if fill == 0:
         seg_counts[i] = n
         if masked:

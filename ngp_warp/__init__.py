@@ -3,8 +3,8 @@
 Public API (``import ngp_warp`` works without a GPU; kernels compile on first use):
 
 * :class:`HashGridEncoding` -- multiresolution hash-grid encoding (tiny-cuda-nn semantics)
-* :class:`OccupancyGrid`, :func:`ray_marching`, :func:`prune_samples`, :func:`composite`,
-  :func:`render_rays`
+* :class:`OccupancyGrid`, :class:`MarchOptions`, :func:`ray_marching`, :func:`prune_samples`,
+  :func:`composite`, :func:`render_rays`
   -- the differentiable render op
 * :class:`NGPField` -- hash grid + tiny MLPs
 """
@@ -22,7 +22,7 @@ from ngp_warp.encoding import HashGridEncoding  # noqa: E402
 from ngp_warp.field import NGPField  # noqa: E402
 from ngp_warp.occupancy import OccupancyGrid  # noqa: E402
 from ngp_warp.prune import prune_samples  # noqa: E402
-from ngp_warp.raymarch import ray_marching  # noqa: E402
+from ngp_warp.raymarch import MarchOptions, ray_marching  # noqa: E402
 from ngp_warp.render import render_rays  # noqa: E402
 
-__all__ = ["HashGridEncoding", "NGPField", "OccupancyGrid", "composite", "prune_samples", "ray_marching", "render_rays", "__version__"]
+__all__ = ["HashGridEncoding", "MarchOptions", "NGPField", "OccupancyGrid", "composite", "prune_samples", "ray_marching", "render_rays", "__version__"]

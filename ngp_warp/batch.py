@@ -34,7 +34,7 @@ def sample_pixels(split: Split, n: int, seed: int, sub: int = 1) -> PixelBatch:
     targets and backgrounds in one launch. The draw is a function of ``seed`` only (the same on
     CPU and CUDA): pass a new seed each step. With ``sub`` > 1 each pixel gets ``sub²`` rays on
     a regular sub-pixel grid (rows ``j sub² ... (j + 1) sub² − 1`` for pixel j, x fastest):
-    ``n sub²`` rays for ``n`` targets (:func:`ngp_warp.losses.ray_loss` with
+    ``n sub²`` rays for ``n`` targets (:func:`ngp_warp.ray_loss.ray_loss` with
     ``rays_per_pixel=sub²`` takes their mean).
 
     .. math::

@@ -12,8 +12,7 @@ For the samples :math:`i` of one ray, front to back,
     D = \\sum_i w_i \\frac{t^{start}_i + t^{end}_i}{2}.
 
 Gradients flow to :math:`\\sigma` and :math:`c` (not to the intervals) through a hand-written
-backward kernel. The autograd function itself lives in :mod:`ngp_warp.render`: this module's
-name doubles as the package's ``composite`` export, so library code never imports it.
+backward kernel.
 """
 
 from __future__ import annotations
@@ -21,7 +20,78 @@ from __future__ import annotations
 import torch
 
 from ngp_warp import _wp
-from ngp_warp.render import composite_packed, ray_offsets_from_indices
+from ngp_warp.kernels import composite as K
+
+# CUDA block size of this module's kernels: one thread walks a whole ray, and a batch has ~10^4
+# rays, so small blocks spread them over all multiprocessors.
+_BLOCK = 32
+
+
+class _Composite(torch.autograd.Function):
+    """Compositing with the Warp forward and hand-written backward kernels."""
+
+    @staticmethod
+    def forward(ctx, sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: float):
+        n_rays, n_samples = ray_offsets.shape[0] - 1, sigmas.shape[0]
+        dev = sigmas.device
+        rgb = torch.empty(n_rays, 3, dtype=torch.float32, device=dev)
+        opacity = torch.empty(n_rays, dtype=torch.float32, device=dev)
+        depth = torch.empty(n_rays, dtype=torch.float32, device=dev)
+        trans = torch.empty(n_samples, dtype=torch.float32, device=dev)
+        weights = torch.zeros(n_samples, dtype=torch.float32, device=dev)  # padding rows stay 0
+        _wp.launch(
+            K.composite_forward, n_rays,
+            [sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps), rgb, opacity, depth, trans, weights],
+            _wp.device_of(sigmas), block_dim=_BLOCK,
+        )
+        ctx.save_for_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans)
+        ctx.set_materialize_grads(False)
+        return rgb, opacity, depth, weights
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_opacity, g_depth, g_weights):
+        sigmas, rgbs, t_starts, t_ends, ray_offsets, trans = ctx.saved_tensors  # checks for in-place changes
+        grads = [None if g is None else g.float().contiguous() for g in (g_rgb, g_opacity, g_depth, g_weights)]
+        has_grads = sum(1 << k for k, g in enumerate(grads) if g is not None)
+        if has_grads == 0:
+            return None, None, None, None, None, None
+        # Zeros: padding rows past the last ray (see ngp_warp.prune) get no gradient.
+        grad_sigmas = torch.zeros_like(sigmas)
+        grad_rgbs = torch.zeros_like(rgbs)
+        _wp.launch(
+            K.composite_backward, ray_offsets.shape[0] - 1,
+            [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, grad_sigmas, grad_rgbs],
+            _wp.device_of(sigmas), block_dim=_BLOCK,
+        )
+        return grad_sigmas, grad_rgbs, None, None, None, None
+
+
+def composite_packed(
+    sigmas: torch.Tensor,
+    rgbs: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    ray_offsets: torch.Tensor,
+    early_stop_eps: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`ngp_warp.composite` on validated, contiguous float32 samples (S ≥ 1) given by
+    ``ray_offsets`` [n_rays + 1] int32 (as from :func:`ngp_warp.ray_marching`), skipping the
+    conversion from ray indices.
+
+    Returns ``(rgb [n_rays, 3], opacity [n_rays], depth [n_rays], weights [S])``, all
+    differentiable w.r.t. ``sigmas`` and ``rgbs``.
+    """
+    return _Composite.apply(sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps))
+
+
+def ray_offsets_from_indices(ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """[S] int64 sorted ray indices (S ≥ 1) → [n_rays + 1] int32 offsets, on the device, no sync."""
+    offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=ray_indices.device)
+    _wp.launch(
+        K.offsets_from_indices, ray_indices.shape[0], [ray_indices, ray_indices.shape[0], n_rays, offsets],
+        _wp.device_of(ray_indices), block_dim=_BLOCK,
+    )
+    return offsets
 
 
 def composite(

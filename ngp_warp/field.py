@@ -21,8 +21,7 @@ import warp as wp
 from ngp_warp import _wp
 from ngp_warp._checks import check_numbers
 from ngp_warp.encoding import HashGridEncoding
-from ngp_warp.kernels import density as density_kernels
-from ngp_warp.kernels import sh as sh_kernels
+from ngp_warp.kernels import field as K
 
 
 INSTANT_NGP_FINEST_RESOLUTION = 2048.0  # instant-ngp's finest level over its unit cube
@@ -84,7 +83,7 @@ def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
     d = d.detach().float().contiguous()
     out = torch.empty(d.shape[0], 16, device=d.device, dtype=torch.float32)
     device = _wp.device_of(d)
-    _wp.launch(sh_kernels.sh_deg4, 4 * d.shape[0], [_wp.to_wp(d, dtype=wp.vec3), _wp.to_wp(out.view(-1, 4), dtype=wp.vec4)],
+    _wp.launch(K.sh_deg4, 4 * d.shape[0], [_wp.to_wp(d, dtype=wp.vec3), _wp.to_wp(out.view(-1, 4), dtype=wp.vec4)],
                device)
     return out
 
@@ -101,9 +100,9 @@ def density_from_log(log_sigma: torch.Tensor, positions: torch.Tensor, aabb: tor
         raise ValueError(f"log_sigma must be a contiguous float32 or bfloat16 [{n}] or [{n}, 1] tensor")
     sigma = torch.empty(n, dtype=torch.float32, device=positions.device)
     if log_sigma.dtype == torch.bfloat16:
-        kernel, h = density_kernels.density_from_log_bf16, log_sigma.view(torch.int16).reshape(n)
+        kernel, h = K.density_from_log_bf16, log_sigma.view(torch.int16).reshape(n)
     else:
-        kernel, h = density_kernels.density_from_log, log_sigma.reshape(n)
+        kernel, h = K.density_from_log, log_sigma.reshape(n)
     _wp.launch(kernel, n, [h, _wp.to_wp(positions, dtype=wp.vec3), aabb, sigma], _wp.device_of(positions))
     return sigma
 

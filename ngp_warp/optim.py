@@ -7,7 +7,7 @@ import math
 import torch
 
 from ngp_warp import _wp
-from ngp_warp.kernels import adam as K
+from ngp_warp.kernels import optim as K
 
 
 _REBASE_LOG_DECAY = -64.0  # flush and rebase a kept average's log-decays beyond this

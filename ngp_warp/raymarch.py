@@ -131,20 +131,59 @@ def _march_config(*values) -> K.MarchConfig:
     return config
 
 
+@dataclass(frozen=True)
+class MarchOptions:
+    """How :func:`ray_marching` (and :func:`ngp_warp.render_rays`) step along the rays.
+
+    Attributes:
+        near, far: the ray interval ``[near, far]``, intersected with the coarsest cascade box.
+        step_size: the step ``s`` (None: :attr:`OccupancyGrid.default_step_size`, the box
+            diagonal / 1024, i.e. √3/1024 for the unit cube).
+        cone_angle: 0 for fixed steps, else ``Δt = clip(t·cone_angle, step_size, max_step)``
+            (instant-ngp uses 1/256 for large scenes).
+        max_step: largest cone step (None: 1e10, i.e. unbounded).
+        stratified: jitter each ray's first sample by ``u·Δt``, ``u ~ U[0, 1)`` (for training;
+            seeded from torch's default CPU generator, so ``torch.manual_seed`` reproduces it).
+        max_samples_per_ray: keep at most this many samples per ray (None: no cap).
+        max_samples: keep at most this many samples in total; rays past the cap lose their tail.
+    """
+
+    near: float = 0.0
+    far: float = 1e10
+    step_size: float | None = None
+    cone_angle: float = 0.0
+    max_step: float | None = None
+    stratified: bool = False
+    max_samples_per_ray: int | None = None
+    max_samples: int | None = None
+
+
+def _march_steps(march: MarchOptions, grid: OccupancyGrid) -> tuple[float, float, int]:
+    """(step, max_step, per-ray cap) of ``march`` on ``grid``; ValueError for a setting out of range."""
+    if not isinstance(march, MarchOptions):
+        raise ValueError(f"march must be a MarchOptions, got {type(march).__name__}")
+    step = grid.default_step_size if march.step_size is None else float(march.step_size)
+    max_step = 1e10 if march.max_step is None else float(march.max_step)
+    if not step > 0:
+        raise ValueError(f"step_size must be positive, got {march.step_size}")
+    if march.cone_angle < 0 or max_step < step:
+        raise ValueError(f"need cone_angle ≥ 0 and max_step ≥ step_size, "
+                         f"got {march.cone_angle}, {max_step}, {step}")
+    if not march.near < march.far:
+        raise ValueError(f"need near < far, got near={march.near}, far={march.far}")
+    cap = _NO_CAP if march.max_samples_per_ray is None else int(march.max_samples_per_ray)
+    if cap < 0 or (march.max_samples is not None and march.max_samples < 0):
+        raise ValueError("max_samples_per_ray and max_samples must be non-negative")
+    return step, max_step, cap
+
+
 @torch.no_grad()
 def ray_marching(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
     grid: OccupancyGrid,
+    march: MarchOptions = MarchOptions(),
     *,
-    near: float = 0.0,
-    far: float = 1e10,
-    step_size: float | None = None,
-    cone_angle: float = 0.0,
-    max_step: float | None = None,
-    stratified: bool = False,
-    max_samples_per_ray: int | None = None,
-    max_samples: int | None = None,
     before_sync: Callable[[], None] | None = None,
 ) -> RaySamples:
     """March rays through ``grid`` and return the packed samples in occupied cells.
@@ -154,16 +193,7 @@ def ray_marching(
             units of ``|d|``, so pass unit vectors for world-space steps); zero directions
             produce no samples.
         grid: the occupancy grid, on the rays' device.
-        near, far: the ray interval ``[near, far]``, intersected with the coarsest cascade box.
-        step_size: the step ``s`` (default :attr:`OccupancyGrid.default_step_size`, the box
-            diagonal / 1024, i.e. √3/1024 for the unit cube).
-        cone_angle: 0 for fixed steps, else ``Δt = clip(t·cone_angle, step_size, max_step)``
-            (instant-ngp uses 1/256 for large scenes).
-        max_step: largest cone step (default 1e10, i.e. unbounded).
-        stratified: jitter each ray's first sample by ``u·Δt``, ``u ~ U[0, 1)`` (for training;
-            seeded from torch's default CPU generator, so ``torch.manual_seed`` reproduces it).
-        max_samples_per_ray: keep at most this many samples per ray (default: no cap).
-        max_samples: keep at most this many samples in total; rays past the cap lose their tail.
+        march: the ray interval, steps and caps (:class:`MarchOptions`).
         before_sync: called once, after the count pass is queued and before the host waits for
             the total: work queued there on the current stream keeps the GPU busy through the
             synchronisation (the trainer queues the previous step's optimizer update). It must
@@ -173,25 +203,16 @@ def ray_marching(
         :class:`RaySamples`.
     """
     _check_rays(rays_o, rays_d, grid)
-    step = grid.default_step_size if step_size is None else float(step_size)
-    max_step = 1e10 if max_step is None else float(max_step)
-    if not step > 0:
-        raise ValueError(f"step_size must be positive, got {step_size}")
-    if cone_angle < 0 or max_step < step:
-        raise ValueError(f"need cone_angle ≥ 0 and max_step ≥ step_size, got {cone_angle}, {max_step}, {step}")
-    if not near < far:
-        raise ValueError(f"need near < far, got near={near}, far={far}")
-    cap = _NO_CAP if max_samples_per_ray is None else int(max_samples_per_ray)
-    if cap < 0 or (max_samples is not None and max_samples < 0):
-        raise ValueError("max_samples_per_ray and max_samples must be non-negative")
-
+    step, max_step, cap = _march_steps(march, grid)
+    near, far, cone_angle = float(march.near), float(march.far), float(march.cone_angle)
     dev = rays_o.device
     n_rays = rays_o.shape[0]
     device = _wp.device_of(rays_o)
     n_seg, seg_steps = _segments(SCHEDULES["cpu" if device == "cpu" else "cuda"], grid, near, far, step, cone_angle)
-    config = _march_config(grid.resolution, grid.levels, grid.n_mips, grid.mip_cells, float(near), float(far), step,
-                           float(cone_angle), max_step, cap, int(stratified), n_seg, seg_steps)
-    common = [rays_o, rays_d, grid.aabb, grid.bitfield, grid.march_mips(), config, host_seed() if stratified else 0]
+    config = _march_config(grid.resolution, grid.levels, grid.n_mips, grid.mip_cells, near, far, step,
+                           cone_angle, max_step, cap, int(march.stratified), n_seg, seg_steps)
+    seed = host_seed() if march.stratified else 0
+    common = [rays_o, rays_d, grid.aabb, grid.bitfield, grid.march_mips(), config, seed]
     n_items = n_rays * n_seg  # one per (ray, segment)
     seg_ints = torch.empty(2 * n_items + 1, dtype=torch.int32, device=dev)  # one allocation for both
     seg_counts, seg_offsets = seg_ints[:n_items], seg_ints[n_items:]
@@ -205,8 +226,8 @@ def ray_marching(
             in_ray = torch.cumsum(seg_counts.view(n_rays, n_seg), 1, dtype=torch.int32).clamp_(max=cap)
             seg_counts = torch.diff(in_ray, dim=1, prepend=in_ray.new_zeros(n_rays, 1)).reshape(-1)
         torch.cumsum(seg_counts, 0, dtype=torch.int32, out=seg_offsets[1:])
-        if max_samples is not None:
-            seg_offsets.clamp_(max=int(max_samples))
+        if march.max_samples is not None:
+            seg_offsets.clamp_(max=int(march.max_samples))
         n_samples = _read_total(seg_offsets[-1:], before_sync)  # the one host synchronisation
     elif before_sync is not None:
         before_sync()

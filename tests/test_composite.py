@@ -2,8 +2,8 @@ import pytest
 import torch
 
 from ngp_warp import composite
-from ngp_warp._reference.render import composite_backward_ref, composite_ref, ray_offsets_ref
-from ngp_warp.render import ray_offsets_from_indices
+from ngp_warp._reference import composite as composite_ref
+from ngp_warp.composite import ray_offsets_from_indices
 
 
 def packed_rays(n_rays=96, max_per_ray=48, device="cpu"):
@@ -33,14 +33,14 @@ def test_offsets_from_indices_match_searchsorted():
     assert ray_indices[0] > 0 and ray_indices[-1] < n_rays - 1  # leading and trailing empty rays
     offsets = ray_offsets_from_indices(ray_indices, n_rays)
     assert offsets.dtype == torch.int32
-    assert torch.equal(offsets.long(), ray_offsets_ref(ray_indices, n_rays))
+    assert torch.equal(offsets.long(), composite_ref.ray_offsets_from_indices(ray_indices, n_rays))
 
 
 @pytest.mark.parametrize("eps", [0.0, 1e-3, 0.2])
 def test_forward_matches_float64_reference(eps):
     sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays = packed_rays()
     rgb, opacity, depth, weights = composite(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, eps, return_weights=True)
-    ref = composite_ref(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, eps)
+    ref = composite_ref.composite(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, eps)
     for actual, expected in zip((rgb, opacity, depth, weights), ref):
         assert_close64(actual, expected)
     assert (opacity > 0.98 - eps).sum() > 10 and ((opacity > 0) & (opacity < 0.5)).sum() > 10
@@ -57,7 +57,7 @@ def test_backward_matches_float64_autograd(eps):
 
     s64 = sigmas.detach().double().requires_grad_(True)
     c64 = rgbs.detach().double().requires_grad_(True)
-    ref = composite_ref(s64, c64, t_starts.double(), t_ends.double(), ray_indices, n_rays, eps)
+    ref = composite_ref.composite(s64, c64, t_starts.double(), t_ends.double(), ray_indices, n_rays, eps)
     r_sigmas, r_rgbs = torch.autograd.grad(ref, (s64, c64), [g.double() for g in grads])
     assert_close64(g_sigmas, r_sigmas)
     assert_close64(g_rgbs, r_rgbs)
@@ -76,7 +76,7 @@ def test_backward_with_some_outputs_unused(used):
                                            allow_unused=True)
     s64 = sigmas.detach().double().requires_grad_(True)
     c64 = rgbs.detach().double().requires_grad_(True)
-    ref = composite_ref(s64, c64, t_starts.double(), t_ends.double(), ray_indices, n_rays, 1e-3)
+    ref = composite_ref.composite(s64, c64, t_starts.double(), t_ends.double(), ray_indices, n_rays, 1e-3)
     r_sigmas, r_rgbs = torch.autograd.grad([ref[k] for k in used], (s64, c64), [grads[k].double() for k in used],
                                            allow_unused=True)
     assert_close64(g_sigmas, r_sigmas)
@@ -92,10 +92,11 @@ def test_backward_twin_matches_autograd_in_float64():
     s64 = sigmas.double().requires_grad_(True)
     c64 = rgbs.double().requires_grad_(True)
     t0, t1 = t_starts.double(), t_ends.double()
-    ref = composite_ref(s64, c64, t0, t1, ray_indices, n_rays, 1e-3)
+    ref = composite_ref.composite(s64, c64, t0, t1, ray_indices, n_rays, 1e-3)
     grads = [torch.randn_like(o) for o in ref]
     a_sigmas, a_rgbs = torch.autograd.grad(ref, (s64, c64), grads)
-    t_sigmas, t_rgbs = composite_backward_ref(s64.detach(), c64.detach(), t0, t1, ray_indices, n_rays, *grads, 1e-3)
+    t_sigmas, t_rgbs = composite_ref.composite_backward(s64.detach(), c64.detach(), t0, t1, ray_indices, n_rays,
+                                                        *grads, 1e-3)
     torch.testing.assert_close(t_sigmas, a_sigmas, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(t_rgbs, a_rgbs, rtol=1e-10, atol=1e-12)
 
@@ -109,7 +110,7 @@ def test_early_stop_zeroes_later_samples_and_their_gradients():
     (rgb.sum() + depth.sum()).backward()
     delta = (t_ends - t_starts).double()
     tau = torch.zeros(sigmas.shape[0], dtype=torch.float64)
-    offsets = ray_offsets_ref(ray_indices, n_rays)
+    offsets = composite_ref.ray_offsets_from_indices(ray_indices, n_rays)
     for r in range(n_rays):
         s = slice(offsets[r], offsets[r + 1])
         x = sigmas.detach()[s].double() * delta[s]

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from ngp_warp import OccupancyGrid
-from ngp_warp._reference.render import cell_boxes_ref, occupancy_update_ref, visible_cells_ref
+from ngp_warp._reference import occupancy as occupancy_ref
 
 AABB = torch.tensor([-1.0, -0.5, 0.0, 1.0, 0.5, 2.0])
 
@@ -44,7 +44,7 @@ def run_update(grid, step, fn=blob_density, **kw):
 
 
 def assert_points_in_cells(grid, cells, points):
-    boxes = cell_boxes_ref(grid.aabb, grid.resolution, grid.levels)[cells.long()]
+    boxes = occupancy_ref.cell_boxes(grid.aabb, grid.resolution, grid.levels)[cells.long()]
     tol = 1e-6
     assert ((points.double() >= boxes[:, 0] - tol) & (points.double() <= boxes[:, 1] + tol)).all()
 
@@ -65,7 +65,7 @@ def test_warmup_evaluates_every_cell_once():
     cells, points, values = run_update(grid, 0, chunk=300)
     assert torch.equal(cells, torch.arange(grid.n_cells, dtype=torch.int32))
     assert_points_in_cells(grid, cells, points)
-    occs, thr, occupied = occupancy_update_ref(old, cells, values, 0.95, 0.01)
+    occs, thr, occupied = occupancy_ref.update(old, cells, values, 0.95, 0.01)
     torch.testing.assert_close(grid.occs.double(), occs, rtol=1e-6, atol=0)
     torch.testing.assert_close(grid.threshold.double(), thr.reshape(1), rtol=1e-6, atol=0)
     assert torch.equal(grid.occupied().reshape(-1), occupied)
@@ -87,7 +87,7 @@ def test_after_warmup_samples_uniform_and_occupied_cells_with_max_ema():
     assert prev_occupied[uniform].any() and not prev_occupied[uniform].all()
     assert from_occupied.unique().numel() > 0.5 * min(quarter, int(prev_occupied.sum()))
     assert cells.unique().numel() < cells.numel()  # repeated cells: scatter-max
-    occs, thr, occupied = occupancy_update_ref(old, cells, values, 0.9, 0.01)
+    occs, thr, occupied = occupancy_ref.update(old, cells, values, 0.9, 0.01)
     torch.testing.assert_close(grid.occs.double(), occs, rtol=1e-6, atol=0)
     assert thr == 0.01  # the mean exceeds occ_threshold here
     assert torch.equal(grid.occupied().reshape(-1), occupied)
@@ -121,8 +121,8 @@ def test_mark_invisible_cells_matches_projection_reference():
     grid.mark_invisible_cells(c2w, intr, w, h, near_plane=0.1)
     visible = grid.occs >= 0
     pad = torch.tensor([0.0, 0.0, 1e-3, 1e-3])
-    inner = visible_cells_ref(grid.aabb, 8, 2, c2w, intr - pad, w - 2e-3, h - 2e-3, 0.1)
-    outer = visible_cells_ref(grid.aabb, 8, 2, c2w, intr + pad, w + 2e-3, h + 2e-3, 0.1)
+    inner = occupancy_ref.visible_cells(grid.aabb, 8, 2, c2w, intr - pad, w - 2e-3, h - 2e-3, 0.1)
+    outer = occupancy_ref.visible_cells(grid.aabb, 8, 2, c2w, intr + pad, w + 2e-3, h + 2e-3, 0.1)
     assert (visible | ~inner).all() and (outer | ~visible).all()
     assert 0.1 < visible.float().mean() < 0.9
     assert torch.equal(grid.occupied().reshape(-1), visible)

@@ -4,8 +4,8 @@ packing, and renders (values and gradients) unchanged by it."""
 import pytest
 import torch
 
-from ngp_warp import prune_samples, ray_marching, render_rays
-from ngp_warp._reference.render import contributing_ref
+from ngp_warp import MarchOptions, prune_samples, ray_marching, render_rays
+from ngp_warp._reference import prune as prune_ref
 from ngp_warp.raymarch import RaySamples
 
 from test_render import camera_rays, sphere_field, sphere_grid
@@ -32,7 +32,7 @@ def random_samples(n_rays=40, seed=0, device="cpu") -> tuple[RaySamples, torch.T
 def test_keeps_exactly_the_samples_that_composite():
     samples, sigmas = random_samples()
     eps = 1e-2
-    keep, trans = contributing_ref(sigmas, samples.t_starts, samples.t_ends, samples.ray_indices, 40, eps)
+    keep, trans = prune_ref.prune_samples(sigmas, samples.t_starts, samples.t_ends, samples.ray_indices, 40, eps)
     assert 0.2 < keep.float().mean() < 0.8  # the test prunes something and keeps something
     clear = (trans.log() - torch.log(torch.tensor(eps, dtype=torch.float64))).abs() > 1e-4
     assert clear.float().mean() > 0.99
@@ -103,7 +103,8 @@ def test_render_with_sigma_fn_gives_the_same_pixels_and_gradients():
 
     def run(**kw):
         scale.grad = tint.grad = None
-        out = render_rays(rays_o, rays_d, grid, field, step_size=0.01, early_stop_eps=1e-3, background=0.5, **kw)
+        out = render_rays(rays_o, rays_d, grid, field, MarchOptions(step_size=0.01), early_stop_eps=1e-3,
+                          background=0.5, **kw)
         (out["rgb"].sum() + out["depth"].sum() * 0.3).backward()
         return out, scale.grad.clone(), tint.grad.clone()
 
@@ -135,7 +136,7 @@ def test_sample_capacity_needs_a_sigma_fn():
     grid = sphere_grid(8)
     rays_o, rays_d = camera_rays(4)
     with pytest.raises(ValueError, match="sigma_fn"):
-        render_rays(rays_o, rays_d, grid, sphere_field, step_size=0.05, sample_capacity=100)
+        render_rays(rays_o, rays_d, grid, sphere_field, MarchOptions(step_size=0.05), sample_capacity=100)
 
 
 @pytest.mark.cuda

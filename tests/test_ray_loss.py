@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from ngp_warp._reference.losses import ray_loss_ref
-from ngp_warp.losses import ray_loss
+from ngp_warp._reference import ray_loss as ray_loss_ref
+from ngp_warp.ray_loss import ray_loss
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)]
 
@@ -38,7 +38,7 @@ def test_values_and_gradients_match_the_float64_twin(device, pixels, k, huber_de
     ref = {k: (v.detach().double().requires_grad_(k in differentiable) if v is not None and v.is_floating_point() else v)
            for k, v in x.items()}
     loss, mse = ray_loss(**ours, extra_weight=0.5, huber_delta=huber_delta, rays_per_pixel=k)
-    ref_loss, ref_mse = ray_loss_ref(**ref, extra_weight=0.5, huber_delta=huber_delta, rays_per_pixel=k)
+    ref_loss, ref_mse = ray_loss_ref.ray_loss(**ref, extra_weight=0.5, huber_delta=huber_delta, rays_per_pixel=k)
     assert loss.shape == () and mse.shape == () and not mse.requires_grad
     torch.testing.assert_close(loss.double().cpu(), ref_loss.detach(), rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(mse.double().cpu(), ref_mse.detach(), rtol=1e-5, atol=1e-7)

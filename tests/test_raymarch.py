@@ -4,8 +4,9 @@ import pytest
 import torch
 
 import ngp_warp.raymarch as raymarch
-from ngp_warp import OccupancyGrid, ray_marching
-from ngp_warp._reference.render import cascade_cells_ref, march_ref, ray_box_ref
+from ngp_warp import MarchOptions, OccupancyGrid, ray_marching
+from ngp_warp._reference import occupancy as occupancy_ref
+from ngp_warp._reference import raymarch as raymarch_ref
 
 AABB = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
 MARGIN = 1e-3  # midpoints closer than this (in cells) to a cell face may be classified either way
@@ -76,8 +77,8 @@ def test_fixed_step_matches_dense_sampler(levels, occupancy):
     grid = shell_grid(levels) if occupancy == "shell" else random_grid(levels, p=0.3 if occupancy == "dense" else 0.02)
     rays_o, rays_d = random_rays(300, levels)
     step = 0.0173
-    samples = ray_marching(rays_o, rays_d, grid, near=0.05, step_size=step)
-    dense = march_ref(rays_o, rays_d, AABB, grid.occupied(), near=0.05, step=step)
+    samples = ray_marching(rays_o, rays_d, grid, MarchOptions(near=0.05, step_size=step))
+    dense = raymarch_ref.ray_marching(rays_o, rays_d, AABB, grid.occupied(), near=0.05, step=step)
     check_against_dense(samples, dense, min_required=300)
 
 
@@ -86,8 +87,8 @@ def test_cone_angle_matches_dense_sampler(occupancy):
     grid = random_grid(3) if occupancy == "dense" else shell_grid(3)
     rays_o, rays_d = random_rays(300, 3)
     kw = dict(near=0.05, cone_angle=1 / 64, max_step=0.12)
-    samples = ray_marching(rays_o, rays_d, grid, step_size=0.01, **kw)
-    dense = march_ref(rays_o, rays_d, AABB, grid.occupied(), step=0.01, **kw)
+    samples = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.01, **kw))
+    dense = raymarch_ref.ray_marching(rays_o, rays_d, AABB, grid.occupied(), step=0.01, **kw)
     check_against_dense(samples, dense, min_required=1000 if occupancy == "dense" else 40)
     dt = samples.t_ends - samples.t_starts
     assert dt.max() > 0.11 and (dt.min() < 0.0101 or occupancy == "shell")  # steps grow with t and are clamped
@@ -97,20 +98,20 @@ def test_misses_emit_nothing_and_inside_rays_start_at_near():
     grid = OccupancyGrid(torch.tensor(AABB), resolution=8)  # fresh grid: everything occupied
     rays_o = torch.tensor([[0.0, 3.0, 0.0], [0.0, 3.0, 0.0], [0.2, -0.3, 0.1234], [0.2, -0.3, 0.1234], [0.0, 0.0, 0.0]])
     rays_d = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.0, 0.0]])
-    samples = ray_marching(rays_o, rays_d, grid, near=0.1, step_size=0.01)
+    samples = ray_marching(rays_o, rays_d, grid, MarchOptions(near=0.1, step_size=0.01))
     counts = samples.ray_offsets.diff()
     assert counts.tolist()[:2] == [0, 0] and counts[-1] == 0  # misses and a zero direction
     for r in (2, 3):
         t = samples.t_starts[samples.ray_indices == r]
-        _, t_out = ray_box_ref(rays_o[r:r + 1], rays_d[r:r + 1], AABB[:3], AABB[3:])
+        _, t_out = raymarch_ref.ray_box(rays_o[r:r + 1], rays_d[r:r + 1], AABB[:3], AABB[3:])
         assert t[0] == pytest.approx(0.1) and counts[r] == math.ceil((t_out.item() - 0.1) / 0.01)
 
 
 def test_fresh_grid_tiles_the_clipped_interval_exactly():
     grid = OccupancyGrid(torch.tensor(AABB), resolution=8, levels=2)
     rays_o, rays_d = random_rays(64, 2)
-    samples = ray_marching(rays_o, rays_d, grid, near=0.0, far=4.0, step_size=0.02)
-    t_in, t_out = ray_box_ref(rays_o, rays_d, [-2.0] * 3, [2.0] * 3)
+    samples = ray_marching(rays_o, rays_d, grid, MarchOptions(near=0.0, far=4.0, step_size=0.02))
+    t_in, t_out = raymarch_ref.ray_box(rays_o, rays_d, [-2.0] * 3, [2.0] * 3)
     for r in range(rays_o.shape[0]):
         s = slice(samples.ray_offsets[r], samples.ray_offsets[r + 1])
         t0, t1 = max(t_in[r].item(), 0.0), min(t_out[r].item(), 4.0)
@@ -125,7 +126,7 @@ def test_fresh_grid_tiles_the_clipped_interval_exactly():
 def test_layout_positions_and_directions():
     grid = random_grid(2)
     rays_o, rays_d = random_rays(100, 2)
-    s = ray_marching(rays_o, rays_d, grid, step_size=0.02)
+    s = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02))
     assert s.ray_indices.dtype == torch.int64 and s.ray_offsets.dtype == torch.int32
     assert (s.ray_indices.diff() >= 0).all()
     assert torch.equal(torch.repeat_interleave(torch.arange(rays_o.shape[0]), s.ray_offsets.diff().long()), s.ray_indices)
@@ -139,13 +140,13 @@ def test_stratified_jitter_is_seeded_and_stays_on_a_regular_grid():
     grid = random_grid(2)
     rays_o, rays_d = random_rays(200, 2)
     torch.manual_seed(1)
-    a = ray_marching(rays_o, rays_d, grid, step_size=0.02, stratified=True)
+    a = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02, stratified=True))
     torch.manual_seed(1)
-    b = ray_marching(rays_o, rays_d, grid, step_size=0.02, stratified=True)
-    c = ray_marching(rays_o, rays_d, grid, step_size=0.02, stratified=True)
+    b = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02, stratified=True))
+    c = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02, stratified=True))
     assert torch.equal(a.t_starts, b.t_starts) and not torch.equal(a.t_starts, c.t_starts)
-    plain = ray_marching(rays_o, rays_d, grid, step_size=0.02)
-    t_in, _ = ray_box_ref(rays_o, rays_d, [-2.0] * 3, [2.0] * 3)
+    plain = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02))
+    t_in, _ = raymarch_ref.ray_box(rays_o, rays_d, [-2.0] * 3, [2.0] * 3)
     t0 = t_in.clamp(min=0)[a.ray_indices]
     k = (a.t_starts.double() - t0) / 0.02
     frac = k - k.floor()
@@ -155,7 +156,7 @@ def test_stratified_jitter_is_seeded_and_stays_on_a_regular_grid():
     torch.testing.assert_close(frac, per_ray, rtol=0, atol=1e-3)
     assert frac[first].std() > 0.2
     dense_cells = grid.occupied().reshape(-1)
-    cells, margin = cascade_cells_ref(a.positions, AABB, 16, 2)
+    cells, margin = occupancy_ref.cascade_cells(a.positions, AABB, 16, 2)
     assert (dense_cells[cells] | (margin < MARGIN)).all()
     assert abs(a.n_samples - plain.n_samples) < 0.05 * plain.n_samples
 
@@ -163,13 +164,13 @@ def test_stratified_jitter_is_seeded_and_stays_on_a_regular_grid():
 def test_caps_keep_the_front_samples():
     grid = random_grid(1, p=0.8)
     rays_o, rays_d = random_rays(100, 1)
-    full = ray_marching(rays_o, rays_d, grid, step_size=0.02)
-    capped = ray_marching(rays_o, rays_d, grid, step_size=0.02, max_samples_per_ray=7)
+    full = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02))
+    capped = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02, max_samples_per_ray=7))
     counts = full.ray_offsets.diff()
     assert torch.equal(capped.ray_offsets.diff(), counts.clamp(max=7)) and counts.max() > 7
     keep = torch.arange(full.n_samples) - full.ray_offsets[full.ray_indices].long() < 7
     assert torch.equal(capped.t_starts, full.t_starts[keep])
-    total = ray_marching(rays_o, rays_d, grid, step_size=0.02, max_samples=1000)
+    total = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02, max_samples=1000))
     assert total.n_samples == 1000 and torch.equal(total.t_starts, full.t_starts[:1000])
     assert torch.equal(total.ray_indices, full.ray_indices[:1000])
 
@@ -192,12 +193,12 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels):
             n_seg, seg_steps = raymarch._segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"], 0.0)
             assert (n_seg, seg_steps > 64) == (1, True) or (n_seg > 1 and seg_steps <= 64)  # masks in the split runs
             torch.manual_seed(3)
-            results.append(ray_marching(rays_o, rays_d, grid, **kw))
+            results.append(ray_marching(rays_o, rays_d, grid, MarchOptions(**kw)))
         one = results[0]
         assert one.n_samples > 1000
         if "max_samples_per_ray" not in kw:  # some last segments keep a step past their mask's bit 63
             s = 2.0 ** (levels - 1)
-            t0 = ray_box_ref(rays_o, rays_d, [-s] * 3, [s] * 3)[0].clamp(min=kw.get("near", 0.0))
+            t0 = raymarch_ref.ray_box(rays_o, rays_d, [-s] * 3, [s] * 3)[0].clamp(min=kw.get("near", 0.0))
             k = (one.t_starts.double() - t0[one.ray_indices]) / kw["step_size"]
             assert k.max() > (n_seg - 1) * seg_steps + 64
         for split in results[1:]:
@@ -209,8 +210,8 @@ def test_strided_rays_match_contiguous():
     grid = random_grid(2)
     rays_o, rays_d = random_rays(100, 2)
     wide = torch.cat([rays_o, rays_d], 1)  # rows of 6: strided [N, 3] views
-    a = ray_marching(rays_o, rays_d, grid, step_size=0.02)
-    b = ray_marching(wide[:, :3], wide[:, 3:], grid, step_size=0.02)
+    a = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02))
+    b = ray_marching(wide[:, :3], wide[:, 3:], grid, MarchOptions(step_size=0.02))
     assert a.n_samples > 100 and torch.equal(a.t_starts, b.t_starts) and torch.equal(a.directions, b.directions)
 
 
@@ -219,14 +220,14 @@ def test_strided_rays_match_contiguous():
 def test_work_queued_before_the_count_is_read_runs_once_and_changes_nothing(device, n_rays):
     grid = random_grid(2).to(device)
     rays_o, rays_d = (t.to(device) for t in random_rays(n_rays, 2))
-    plain = ray_marching(rays_o, rays_d, grid, step_size=0.02)
+    plain = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02))
     queued = []
     scratch = torch.zeros(1 << 20, device=device)
 
     def work():  # device work queued behind the count: the host must not wait for it to read it
         queued.append(scratch.add_(1.0).sum())
 
-    hidden = ray_marching(rays_o, rays_d, grid, step_size=0.02, before_sync=work)
+    hidden = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02), before_sync=work)
     assert len(queued) == 1 and float(queued[0]) == scratch.numel()
     assert (plain.n_samples > 100) == (n_rays > 0)
     for name in ("ray_offsets", "ray_indices", "t_starts", "t_ends", "positions", "directions"):
@@ -251,7 +252,7 @@ def _bad_calls():
 def test_invalid_inputs_raise_value_error(case):
     _, args, kwargs = case
     with pytest.raises(ValueError):
-        ray_marching(*args, **kwargs)
+        ray_marching(*args, MarchOptions(**kwargs))
 
 
 @pytest.mark.cuda
@@ -259,12 +260,12 @@ def test_cuda_matches_cpu():
     grid = random_grid(2)
     rays_o, rays_d = random_rays(300, 2)
     kw = dict(step_size=0.01, cone_angle=1 / 128)
-    cpu = ray_marching(rays_o, rays_d, grid, **kw)
-    gpu = ray_marching(rays_o.cuda(), rays_d.cuda(), grid.to("cuda"), **kw)
+    cpu = ray_marching(rays_o, rays_d, grid, MarchOptions(**kw))
+    gpu = ray_marching(rays_o.cuda(), rays_d.cuda(), grid.to("cuda"), MarchOptions(**kw))
     gpu = type(gpu)(*(t.cpu() for t in vars(gpu).values()))
     # Midpoints within float rounding of a cell face may be classified differently on the two
     # devices, so both are checked against the float64 dense sampler and rays compared.
-    dense = march_ref(rays_o, rays_d, AABB, grid.occupied().cpu(), step=0.01, cone_angle=1 / 128)
+    dense = raymarch_ref.ray_marching(rays_o, rays_d, AABB, grid.occupied().cpu(), step=0.01, cone_angle=1 / 128)
     check_against_dense(gpu, dense)
     same = cpu.ray_offsets.diff() == gpu.ray_offsets.diff()
     assert same.float().mean() > 0.99

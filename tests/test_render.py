@@ -1,8 +1,9 @@
 import pytest
 import torch
 
-from ngp_warp import OccupancyGrid, ray_marching, render_rays
-from ngp_warp._reference.render import composite_ref, ray_offsets_ref, sphere_render_ref
+from ngp_warp import MarchOptions, OccupancyGrid, ray_marching, render_rays
+from ngp_warp._reference import composite as composite_ref
+from ngp_warp._reference import render as render_ref
 
 AABB = torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
 CENTER = torch.tensor([0.1, -0.05, 0.0])
@@ -32,7 +33,7 @@ def camera_rays(n, device="cpu"):
 
 
 def check_sphere(out, rays_o, rays_d, step):
-    opacity, depth = sphere_render_ref(rays_o, rays_d, CENTER, RADIUS, SIGMA)
+    opacity, depth = render_ref.render_rays(rays_o, rays_d, CENTER, RADIUS, SIGMA)
     assert 40 < (opacity > 0).sum() < 250
     # Midpoint sampling misplaces each end of the chord by at most step/2, so the optical depth
     # is off by at most σ·step and the depth by at most that times the exit distance (≤ 4).
@@ -49,7 +50,8 @@ def check_sphere(out, rays_o, rays_d, step):
 def test_sphere_opacity_and_depth_match_closed_form():
     grid = sphere_grid()
     rays_o, rays_d = camera_rays(256)
-    out = render_rays(rays_o, rays_d, grid, sphere_field, near=0.0, far=10.0, step_size=2e-3, early_stop_eps=0.0)
+    out = render_rays(rays_o, rays_d, grid, sphere_field, MarchOptions(near=0.0, far=10.0, step_size=2e-3),
+                      early_stop_eps=0.0)
     check_sphere(out, rays_o, rays_d, 2e-3)
     assert grid.occupied().float().mean() < 0.25 and out["n_samples"] < 256 * 700
 
@@ -65,14 +67,14 @@ def test_gradients_reach_the_field_like_a_float64_pipeline():
         return sigma * scale * (1 + positions[:, 0]), torch.sigmoid(positions * 2 + directions) * tint
 
     bg = torch.rand(64, 3)
-    out = render_rays(rays_o, rays_d, grid, field, step_size=0.01, background=bg)
+    out = render_rays(rays_o, rays_d, grid, field, MarchOptions(step_size=0.01), background=bg)
     (out["rgb"].sum() + out["depth"].sum() * 0.3).backward()
     grads = scale.grad.clone(), tint.grad.clone()
 
     scale.grad = tint.grad = None
-    s = ray_marching(rays_o, rays_d, grid, step_size=0.01)
+    s = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.01))
     sigmas, rgbs = field(s.positions.double(), s.directions.double())
-    rgb, opacity, depth, _ = composite_ref(sigmas, rgbs, s.t_starts, s.t_ends, s.ray_indices, 64, 1e-4)
+    rgb, opacity, depth, _ = composite_ref.composite(sigmas, rgbs, s.t_starts, s.t_ends, s.ray_indices, 64, 1e-4)
     ((rgb + bg * (1 - opacity[:, None])).sum() + depth.sum() * 0.3).backward()
     torch.testing.assert_close(grads[0], scale.grad, rtol=1e-4, atol=1e-6)
     torch.testing.assert_close(grads[1], tint.grad, rtol=1e-4, atol=1e-6)
@@ -82,13 +84,13 @@ def test_gradients_reach_the_field_like_a_float64_pipeline():
 def test_background_and_returned_samples():
     grid = sphere_grid(16)
     rays_o, rays_d = camera_rays(32)
-    plain = render_rays(rays_o, rays_d, grid, sphere_field, step_size=0.01, return_samples=True)
+    plain = render_rays(rays_o, rays_d, grid, sphere_field, MarchOptions(step_size=0.01), return_samples=True)
     per_ray = torch.zeros(32).index_add_(0, plain["ray_indices"], plain["weights"])
     torch.testing.assert_close(per_ray, plain["opacity"], rtol=1e-5, atol=1e-6)
     assert plain["ray_offsets"].dtype == torch.int32 and plain["ray_indices"].unique().numel() > 1
-    assert torch.equal(plain["ray_offsets"].long(), ray_offsets_ref(plain["ray_indices"], 32))
+    assert torch.equal(plain["ray_offsets"].long(), composite_ref.ray_offsets_from_indices(plain["ray_indices"], 32))
     for bg in (0.25, torch.tensor([0.1, 0.2, 0.3]), torch.rand(32, 3)):
-        out = render_rays(rays_o, rays_d, grid, sphere_field, step_size=0.01, background=bg)
+        out = render_rays(rays_o, rays_d, grid, sphere_field, MarchOptions(step_size=0.01), background=bg)
         expected = plain["rgb"] + torch.as_tensor(bg).expand(32, 3) * (1 - plain["opacity"])[:, None]
         torch.testing.assert_close(out["rgb"], expected)
 
@@ -119,14 +121,15 @@ def test_invalid_inputs_raise_value_error(field, kwargs):
     grid = OccupancyGrid(AABB, resolution=8)
     rays_o, rays_d = camera_rays(4)
     with pytest.raises(ValueError):
-        render_rays(rays_o, rays_d, grid, field, step_size=0.05, **kwargs)
+        render_rays(rays_o, rays_d, grid, field, MarchOptions(step_size=0.05), **kwargs)
 
 
 @pytest.mark.cuda
 def test_cuda_sphere_matches_closed_form():
     rays_o, rays_d = camera_rays(256)
     grid = sphere_grid(device="cuda")
-    out = render_rays(rays_o.cuda(), rays_d.cuda(), grid, sphere_field, step_size=2e-3, early_stop_eps=0.0)
+    out = render_rays(rays_o.cuda(), rays_d.cuda(), grid, sphere_field, MarchOptions(step_size=2e-3),
+                      early_stop_eps=0.0)
     check_sphere(out, rays_o, rays_d, 2e-3)
 
 

@@ -3,7 +3,7 @@
 import torch
 
 
-def spherical_harmonics_deg4_ref(d: torch.Tensor) -> torch.Tensor:
+def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
     """Real spherical harmonics of degree 4 (bands 0..3, 16 values) of unit directions.
 
     d: [N, 3] float, unit length. Returns [N, 16] with tiny-cuda-nn's ordering and signs.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 
-def lazy_adam_ref(param, grads, lr: float, betas=(0.9, 0.99), eps: float = 1e-15,
+def lazy_adam(param, grads, lr: float, betas=(0.9, 0.99), eps: float = 1e-15,
                   weight_decay: float = 0.0, average_decays=None):
     """``param`` after one LazyAdam step per gradient in ``grads`` (all float64). With
     ``average_decays`` (one per step), also the moving average of ``param`` updated densely

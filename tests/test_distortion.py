@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from ngp_warp import composite
-from ngp_warp._reference.losses import distortion_loss_ref
-from ngp_warp._reference.render import ray_offsets_ref
-from ngp_warp.losses import distortion_loss, distortion_loss_packed
+from ngp_warp._reference import composite as composite_ref
+from ngp_warp._reference import distortion as distortion_ref
+from ngp_warp.distortion import distortion_loss, distortion_loss_packed
 
 
 def packed_samples(counts, n_padding=0, seed=0):
@@ -38,7 +38,7 @@ COUNTS = [5, 0, 1, 17, 40, 3, 0, 64]
 def test_values_match_the_float64_twin():
     w, ts, te, rays, n = packed_samples(COUNTS)
     ours = distortion_loss(w, ts, te, rays, n)
-    ref = distortion_loss_ref(w, ts, te, rays, n)
+    ref = distortion_ref.distortion_loss(w, ts, te, rays, n)
     assert ref.abs().max() > 1e-3 and (ref[[1, 6]] == 0).all()
     torch.testing.assert_close(ours.double(), ref, rtol=1e-4, atol=1e-7)
 
@@ -49,7 +49,7 @@ def test_gradients_match_the_float64_twin():
     w1 = w.clone().requires_grad_(True)
     (distortion_loss(w1, ts, te, rays, n) * upstream).sum().backward()
     w2 = w.double().clone().requires_grad_(True)
-    (distortion_loss_ref(w2, ts, te, rays, n) * upstream.double()).sum().backward()
+    (distortion_ref.distortion_loss(w2, ts, te, rays, n) * upstream.double()).sum().backward()
     assert w2.grad.abs().max() > 1e-3
     torch.testing.assert_close(w1.grad.double(), w2.grad, rtol=1e-4, atol=1e-6)
 
@@ -59,7 +59,7 @@ def test_padding_rows_are_ignored_and_get_no_gradient():
     w[-7:] = 0.3  # even with weight, a row past the last ray belongs to no ray
     w.requires_grad_(True)
     loss = distortion_loss(w, ts, te, rays, n)
-    torch.testing.assert_close(loss.double(), distortion_loss_ref(w, ts, te, rays, n), rtol=1e-4, atol=1e-7)
+    torch.testing.assert_close(loss.double(), distortion_ref.distortion_loss(w, ts, te, rays, n), rtol=1e-4, atol=1e-7)
     loss.sum().backward()
     assert (w.grad[-7:] == 0).all() and w.grad[:-7].abs().max() > 0
 
@@ -69,7 +69,7 @@ def test_packed_offsets_give_the_same_loss_and_gradients():
     upstream = torch.randn(n)
     by_index, by_offset = w.clone().requires_grad_(True), w.clone().requires_grad_(True)
     a = distortion_loss(by_index, ts, te, rays, n)
-    b = distortion_loss_packed(by_offset, ts, te, ray_offsets_ref(rays, n).int())
+    b = distortion_loss_packed(by_offset, ts, te, composite_ref.ray_offsets_from_indices(rays, n).int())
     assert a.abs().max() > 0
     torch.testing.assert_close(a, b, rtol=0, atol=0)
     (a * upstream).sum().backward()

@@ -1,0 +1,17 @@
+"""Float64 pure-torch twin of :func:`ngp_warp.distortion.distortion_loss` (tests only)."""
+
+from __future__ import annotations
+
+import torch
+
+
+def distortion_loss(weights, t_starts, t_ends, ray_indices, n_rays: int) -> torch.Tensor:
+    """[n_rays] float64 distortion loss straight from the double sum, one ray at a time."""
+    out = []
+    for r in range(n_rays):
+        s = ray_indices == r
+        w = weights[s].double()
+        m = 0.5 * (t_starts[s] + t_ends[s]).double()
+        d = (t_ends[s] - t_starts[s]).double()
+        out.append((w[:, None] * w[None] * (m[:, None] - m[None]).abs()).sum() + (w * w * d).sum() / 3)
+    return torch.stack(out) if out else torch.zeros(0, dtype=torch.float64)

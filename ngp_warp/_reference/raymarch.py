@@ -1,0 +1,58 @@
+"""Float64 pure-torch twin of :func:`ngp_warp.ray_marching`: a dense sampler (tests only)."""
+
+from __future__ import annotations
+
+import torch
+
+from ngp_warp._reference.occupancy import cascade_cells, center_half
+
+f64 = torch.float64
+
+
+def ray_box(rays_o, rays_d, lo, hi):
+    """(t_enter, t_exit) of each ray with the box [lo, hi] (t_enter > t_exit on a miss)."""
+    o, d = rays_o.to(f64).cpu(), rays_d.to(f64).cpu()
+    lo, hi = torch.as_tensor(lo, dtype=f64), torch.as_tensor(hi, dtype=f64)
+    with torch.no_grad():
+        inv = 1.0 / d
+        ta, tb = (lo - o) * inv, (hi - o) * inv
+        t_in = torch.minimum(ta, tb).nan_to_num(-torch.inf).amax(-1)
+        t_out = torch.maximum(ta, tb).nan_to_num(torch.inf).amin(-1)
+    return t_in, t_out
+
+
+def ray_marching(rays_o, rays_d, aabb, occupied: torch.Tensor, *, near=0.0, far=1e10, step=0.01,
+              cone_angle=0.0, max_step=1e10):
+    """Dense sampler: every step t_k in [t0, t1] of each ray, whether or not its cell is occupied.
+
+    Returns a dict of flat float64/long tensors sorted by (ray, t): ray, t_start, t_end,
+    occupied (cell of the midpoint), margin (distance of the midpoint to a cell face, cells).
+    """
+    levels, res = occupied.shape[0], occupied.shape[1]
+    c, h = center_half(aabb)
+    outer = h * 2.0 ** (levels - 1)
+    t_in, t_out = ray_box(rays_o, rays_d, c - outer, c + outer)
+    t0, t1 = t_in.clamp(min=near), t_out.clamp(max=far)
+    o, d = rays_o.to(f64).cpu(), rays_d.to(f64).cpu()
+    rays, starts, ends = [], [], []
+    k = 0
+    t = t0.clone()
+    active = (t0 < t1) & (d.abs().sum(-1) > 0)
+    while active.any():
+        dt = torch.full_like(t, step) if cone_angle == 0 else (t * cone_angle).clamp(step, max_step)
+        idx = active.nonzero()[:, 0]
+        rays.append(idx)
+        starts.append(t[idx])
+        ends.append(torch.minimum(t + dt, t1)[idx])
+        k += 1
+        t = t0 + k * step if cone_angle == 0 else t + dt
+        active &= t < t1
+    ray = torch.cat(rays) if rays else torch.zeros(0, dtype=torch.long)
+    t_start = torch.cat(starts) if starts else torch.zeros(0, dtype=f64)
+    t_end = torch.cat(ends) if ends else torch.zeros(0, dtype=f64)
+    order = torch.argsort(ray, stable=True)
+    ray, t_start, t_end = ray[order], t_start[order], t_end[order]
+    mid = o[ray] + d[ray] * (0.5 * (t_start + t_end))[:, None]
+    cells, margin = cascade_cells(mid, aabb, res, levels)
+    return {"ray": ray, "t_start": t_start, "t_end": t_end,
+            "occupied": occupied.reshape(-1).cpu()[cells], "margin": margin}
