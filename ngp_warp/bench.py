@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from ngp_warp import _wp
-from ngp_warp.encoding import HashGridEncoding
+from ngp_warp.hashgrid import HashGridEncoding
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.raymarch import ray_marching
 from ngp_warp.render import composite_packed

@@ -1,8 +1,8 @@
 """Throughput of the hash-grid encoding: forward, backward and forward+backward.
 
-    python benchmarks/bench_encoding.py --device cuda --sizes 2^16,2^18,2^20,2^21,2^22
-    python benchmarks/bench_encoding.py --device cuda --sizes 2^21 --variants default k2 k8 nopair fp16
-    python benchmarks/bench_encoding.py --device cpu --sizes 2^12,2^14 --repeats 3
+    python benchmarks/bench_hashgrid.py --device cuda --sizes 2^16,2^18,2^20,2^21,2^22
+    python benchmarks/bench_hashgrid.py --device cuda --sizes 2^21 --variants default k2 k8 nopair fp16
+    python benchmarks/bench_hashgrid.py --device cpu --sizes 2^12,2^14 --repeats 3
 
 Default configuration: the NeRF one (D=3, L=16, F=2, T=2^19, base 16, per-level scale 2),
 random points in the unit cube (the worst case for the caches: real NeRF batches are
@@ -15,7 +15,7 @@ spatially coherent). Columns, per size and variant, in million points per second
 * ``GB/s``: effective bandwidth of fwd / bwd, counting the points read once, the output (or
   its gradient) once and every corner access as ``F*4`` bytes (the gathers of the forward, the
   atomic additions of the backward): ``N*(D*4 + L*F*4 + L*2^D*F*4)`` bytes;
-* ``ref`` / ``x``: the pure-torch reference (``ngp_warp/_reference/encoding.py``) in float32 on
+* ``ref`` / ``x``: the pure-torch reference (``ngp_warp/_reference/hashgrid.py``) in float32 on
   the same device, same run, and the speed-up of the Warp kernels over it.
 
 Times are medians over ``--repeats`` batches of ``--inner`` back-to-back calls after warm-up
@@ -42,7 +42,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ngp_warp import HashGridEncoding  # noqa: E402
-from ngp_warp._reference.encoding import encode_like  # noqa: E402
+from ngp_warp._reference.hashgrid import encode_like  # noqa: E402
 from ngp_warp.bench import device_name, measure  # noqa: E402
 
 
@@ -87,7 +87,7 @@ def apply_variant(enc: HashGridEncoding, variant: str, defaults: dict) -> None:
             raise SystemExit(f"unknown variant token {tok!r}")
 
 
-def main(argv=None) -> int:
+def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--sizes", default=None, help="comma-separated N, e.g. 2^16,2^21 or 65536")
@@ -106,27 +106,11 @@ def main(argv=None) -> int:
     ap.add_argument("--no-reference", action="store_true", help="skip the pure-torch reference")
     ap.add_argument("--reference-max-size", type=int, default=2**22)
     ap.add_argument("--json", default=None, help="write all numbers to this file")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
-    device = torch.device(args.device)
-    is_cuda = device.type == "cuda"
-    default_sizes = [2**k for k in (16, 18, 20, 21, 22)] if is_cuda else [2**12, 2**14]
-    sizes = parse_sizes(args.sizes) if args.sizes else default_sizes
-    repeats = args.repeats or (20 if is_cuda else 3)
-    inner = args.inner or (5 if is_cuda else 1)
-    enc = HashGridEncoding(
-        args.dims,
-        args.levels,
-        args.features,
-        args.log2_hashmap_size,
-        args.base_resolution,
-        args.per_level_scale,
-        args.interpolation,
-        device=device,
-    )
-    D, L, F = enc.n_input_dims, enc.n_levels, enc.n_features_per_level
-    bytes_per_point = D * 4 + L * F * 4 + L * (1 << D) * F * 4
 
+def run_header(enc: HashGridEncoding, device: torch.device, repeats: int, inner: int) -> dict:
+    """Date, commit, device, versions and configuration of this run (also printed)."""
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     except OSError:
@@ -138,9 +122,9 @@ def main(argv=None) -> int:
         "torch": torch.__version__,
         "warp": __import__("warp").__version__,
         "config": {
-            "D": D,
-            "L": L,
-            "F": F,
+            "D": enc.n_input_dims,
+            "L": enc.n_levels,
+            "F": enc.n_features_per_level,
             "log2T": enc.log2_hashmap_size,
             "base": enc.base_resolution,
             "per_level_scale": enc.per_level_scale,
@@ -151,8 +135,13 @@ def main(argv=None) -> int:
         "inner": inner,
     }
     print(f"# {header['device']}  torch {header['torch']}  warp {header['warp']}  commit {commit}  {header['date']}")
-    print(f"# D={D} L={L} F={F} T=2^{enc.log2_hashmap_size} n_params={enc.n_params}  repeats={repeats} x {inner} calls")
+    print(f"# D={enc.n_input_dims} L={enc.n_levels} F={enc.n_features_per_level} T=2^{enc.log2_hashmap_size} "
+          f"n_params={enc.n_params}  repeats={repeats} x {inner} calls")
+    return header
 
+
+def measure_rows(enc: HashGridEncoding, args, sizes: list[int], device, repeats: int, inner: int) -> list[dict]:
+    """Seconds per call of every size and variant (and of the reference, once per size)."""
     rows = []
     ref_cache = {}
     defaults = {k: getattr(enc, k) for k in KNOBS}
@@ -177,10 +166,15 @@ def main(argv=None) -> int:
                     )
                 row.update({f"ref_{k}": v for k, v in ref_cache[n].items()})
             rows.append(row)
+    return rows
 
-    def mpts(n, s):
-        return n / s * 1e-6
 
+def mpts(n, s):
+    return n / s * 1e-6
+
+
+def print_table(rows: list[dict], args, bytes_per_point: int) -> None:
+    """Print the rows in Mpoints/s and add the ``*_mpts`` columns to them."""
     cols = ["N", "variant", "fwd", "bwd", "f+b"] + (["bwdx"] if args.with_dx else []) + ["fwd GB/s", "bwd GB/s"]
     if not args.no_reference:
         cols += ["ref fwd", "ref bwd", "ref f+b", "x fwd", "x bwd", "x f+b"]
@@ -201,6 +195,31 @@ def main(argv=None) -> int:
                 vals += ["-"] * 6
         print(" | ".join(f"{v:>10}" for v in vals))
         r.update({f"{k[:-2]}_mpts": mpts(n, r[k]) for k in list(r) if k.endswith("_s")})
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    device = torch.device(args.device)
+    is_cuda = device.type == "cuda"
+    default_sizes = [2**k for k in (16, 18, 20, 21, 22)] if is_cuda else [2**12, 2**14]
+    sizes = parse_sizes(args.sizes) if args.sizes else default_sizes
+    repeats = args.repeats or (20 if is_cuda else 3)
+    inner = args.inner or (5 if is_cuda else 1)
+    enc = HashGridEncoding(
+        args.dims,
+        args.levels,
+        args.features,
+        args.log2_hashmap_size,
+        args.base_resolution,
+        args.per_level_scale,
+        args.interpolation,
+        device=device,
+    )
+    D, L, F = enc.n_input_dims, enc.n_levels, enc.n_features_per_level
+    bytes_per_point = D * 4 + L * F * 4 + L * (1 << D) * F * 4
+    header = run_header(enc, device, repeats, inner)
+    rows = measure_rows(enc, args, sizes, device, repeats, inner)
+    print_table(rows, args, bytes_per_point)
     if args.json:
         Path(args.json).write_text(json.dumps({**header, "bytes_per_point": bytes_per_point, "rows": rows}, indent=1))
     return 0

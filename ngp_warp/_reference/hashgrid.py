@@ -1,4 +1,5 @@
-"""Pure-torch twin of the hash-grid encoding (``kernels/hashgrid.py``), float64 by default.
+"""Pure-torch twin of the hash-grid encoding (``ngp_warp/hashgrid.py``, ``kernels/hashgrid.py``),
+float64 by default.
 
 Same semantics as tiny-cuda-nn's ``HashGrid``: the cell and the fraction within it come from
 the float32 position ``fmaf(scale, x, 0.5)`` exactly as the kernels (and tcnn) compute them;
@@ -21,7 +22,7 @@ def _mul32(a: torch.Tensor, b: int) -> torch.Tensor:
     return (a * lo + (((a * hi) & 0xFFFF) << 16)) & _M32
 
 
-def hashgrid_encode(
+def encode(
     x: torch.Tensor,
     params: torch.Tensor,
     *,
@@ -36,7 +37,7 @@ def hashgrid_encode(
     """Encode ``x`` ``[N, D]`` with the flat table ``params``: ``[N, L*F]`` in ``dtype``.
 
     ``scales``, ``resolutions``, ``offsets`` (``L + 1`` entries) and ``hashed`` are the level
-    constants of ``ngp_warp.encoding.level_table``. ``x`` values must be float32-representable
+    constants of ``ngp_warp.hashgrid.level_table``. ``x`` values must be float32-representable
     (the cell is chosen from their float32 value).
     """
     n, D = x.shape
@@ -79,8 +80,8 @@ def hashgrid_encode(
 
 
 def encode_like(enc, x: torch.Tensor, params: torch.Tensor | None = None, dtype: torch.dtype = torch.float64):
-    """:func:`hashgrid_encode` with the hyper-parameters of a ``HashGridEncoding`` ``enc``."""
-    return hashgrid_encode(
+    """:func:`encode` with the hyper-parameters of a ``HashGridEncoding`` ``enc``."""
+    return encode(
         x,
         enc.params if params is None else params,
         n_features=enc.n_features_per_level,

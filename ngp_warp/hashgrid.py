@@ -15,10 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import warp as wp
 from torch.autograd.function import once_differentiable
 
 from ngp_warp import _wp
 from ngp_warp.kernels import hashgrid as K
+from ngp_warp.kernels.hashgrid_native import half_vec_type, vec_type
 
 _MAX_ITEMS = 2**31 - 1  # kernels index the [N, L] output with int32
 
@@ -66,6 +68,17 @@ def level_table(
         offsets.append(offsets[-1] + size)
         hashed.append(size < stride)
     return LevelTable(tuple(scales), tuple(resolutions), tuple(sizes), tuple(offsets), tuple(hashed))
+
+
+def _scale_for(desired_resolution: float, base_resolution: int, n_levels: int, per_level_scale: float) -> float:
+    """The ``per_level_scale`` whose finest level has ``desired_resolution``."""
+    if per_level_scale != 2.0:
+        raise ValueError("give either per_level_scale or desired_resolution, not both")
+    if not desired_resolution >= 1:
+        raise ValueError(f"desired_resolution must be >= 1, got {desired_resolution!r}")
+    if n_levels == 1:
+        return 1.0
+    return math.exp((math.log(desired_resolution) - math.log(base_resolution)) / (n_levels - 1))
 
 
 class _HashGridFunction(torch.autograd.Function):
@@ -189,15 +202,7 @@ class HashGridEncoding(torch.nn.Module):
         if interpolation not in K.INTERPOLATIONS:
             raise ValueError(f"interpolation must be one of {K.INTERPOLATIONS}, got {interpolation!r}")
         if desired_resolution is not None:
-            if per_level_scale != 2.0:
-                raise ValueError("give either per_level_scale or desired_resolution, not both")
-            if not desired_resolution >= 1:
-                raise ValueError(f"desired_resolution must be >= 1, got {desired_resolution!r}")
-            per_level_scale = (
-                math.exp((math.log(desired_resolution) - math.log(base_resolution)) / (n_levels - 1))
-                if n_levels > 1
-                else 1.0
-            )
+            per_level_scale = _scale_for(desired_resolution, base_resolution, n_levels, per_level_scale)
         if not per_level_scale > 0:
             raise ValueError(f"per_level_scale must be > 0, got {per_level_scale!r}")
         if grad_dtype not in (torch.float32, torch.float16):
@@ -301,27 +306,17 @@ class HashGridEncoding(torch.nn.Module):
         half = self.grad_dtype == torch.float16
         D, F, interp = self.n_input_dims, self.n_features_per_level, self.interpolation
         if device == "cpu" and not self._cuda_schedule_on_cpu:
-            config = K.KernelConfig(D, F, interp, 1, 1, False, half, 0)
-        else:
-            config = K.KernelConfig(
-                D,
-                F,
-                interp,
-                int(self.cuda_levels_per_thread),
-                int(self.cuda_level_lanes),
-                bool(self.cuda_paired),
-                half,
-                # the CPU has no atomics: one item per point there
-                0 if device == "cpu" else int(self.cuda_dx_levels_per_thread),
-            )
-        return K.get_kernels(config)
+            return K.get_kernels(K.KernelConfig(D, F, interp, 1, 1, False, half, 0))
+        G, lanes, paired = int(self.cuda_levels_per_thread), int(self.cuda_level_lanes), bool(self.cuda_paired)
+        dx_levels = 0 if device == "cpu" else int(self.cuda_dx_levels_per_thread)  # the CPU has no atomics
+        return K.get_kernels(K.KernelConfig(D, F, interp, G, lanes, paired, half, dx_levels))
 
     def _level_arrays(self):
         """Warp views of the per-level constants (cached per buffer address)."""
         key = (self._scales.data_ptr(), self._meta.data_ptr())
         arrays = self._wp_meta.get(key)
         if arrays is None:
-            arrays = (_wp.to_wp(self._scales), _wp.to_wp(self._meta, dtype=K.wp.vec4i))
+            arrays = (_wp.to_wp(self._scales), _wp.to_wp(self._meta, dtype=wp.vec4i))
             self._wp_meta = {key: arrays}
         return arrays
 
@@ -330,7 +325,7 @@ class HashGridEncoding(torch.nn.Module):
         F = self.n_features_per_level
         if F == 1:
             return _wp.to_wp(t.reshape(-1))
-        vec = dtype if dtype is not None else K._vec(F)
+        vec = dtype if dtype is not None else vec_type(F)
         return _wp.to_wp(t.reshape(-1, F), dtype=vec)
 
     def _n_items(self, config: K.KernelConfig, n: int) -> int:
@@ -373,18 +368,8 @@ class HashGridEncoding(torch.nn.Module):
         _wp.launch(
             k.backward_params,
             self._n_items(k.config, n),
-            [
-                n,
-                L,
-                _wp.to_wp(x.reshape(-1)),
-                scales,
-                meta,
-                self._entries(grad_out),
-                self._entries(grad),
-                None if half is None else self._entries(half, K._hvec(F)),
-                half_from,
-                half_base,
-            ],
+            [n, L, _wp.to_wp(x.reshape(-1)), scales, meta, self._entries(grad_out), self._entries(grad),
+             None if half is None else self._entries(half, half_vec_type(F)), half_from, half_base],
             device,
             align=k.config.level_lanes * n,  # a level group's items (disjoint table regions)
         )
@@ -404,16 +389,8 @@ class HashGridEncoding(torch.nn.Module):
         _wp.launch(
             k.backward_x,
             n if GX == 0 else -(-L // GX) * n,
-            [
-                n,
-                L,
-                _wp.to_wp(x.reshape(-1)),
-                self._entries(_aligned(params.detach())),
-                scales,
-                meta,
-                self._entries(grad_out),
-                _wp.to_wp(grad_x.reshape(-1)),
-            ],
+            [n, L, _wp.to_wp(x.reshape(-1)), self._entries(_aligned(params.detach())), scales, meta,
+             self._entries(grad_out), _wp.to_wp(grad_x.reshape(-1))],
             device,
         )
         return grad_x
