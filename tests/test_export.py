@@ -173,3 +173,21 @@ def test_cpu_and_cuda_meshes_agree():
                                m.vertices[m.faces[:, 2]] - m.vertices[m.faces[:, 0]]).norm(dim=-1).sum().cpu()
             for m in (cpu, gpu)]
     assert torch.allclose(area[0], area[1], rtol=1e-5)
+
+
+def test_export_command_refuses_bad_outputs_before_loading(tmp_path):
+    from argparse import Namespace
+
+    from ngp_warp.cli import UserError
+    from ngp_warp.export import cmd_export
+
+    args = Namespace(dir=str(tmp_path), mesh=None, points=None, resolution=8, threshold=None, max_points=10,
+                     scene=None, device="cpu", quiet=True)
+    with pytest.raises(UserError, match="nothing to export"):
+        cmd_export(args)
+    args.mesh = "mesh.obj"
+    with pytest.raises(UserError, match="expected a .ply path"):
+        cmd_export(args)
+    args.mesh, args.points = "mesh.ply", "missing/points.ply"
+    with pytest.raises(UserError, match="does not exist"):
+        cmd_export(args)
