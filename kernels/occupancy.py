@@ -15,6 +15,8 @@ with ``R_m = R >> m`` and ``base_m = Σ_{m' < m} R_{m'}³``.
 
 import warp as wp
 
+from ngp_warp.kernels.contraction import denormalize_point, uncontract
+
 wp.set_module_options({"enable_backward": False})
 
 # Bisection over at most 2^31 cells ends within 31 halvings.
@@ -227,12 +229,15 @@ def corner_seen(p: wp.vec3, c2w: wp.array2d(dtype=float), intr: wp.array2d(dtype
 
 
 # A cell is visible when any of its 8 corners projects into any camera's image in front of its
-# near plane. occ ← visible ? max(occ, 0) : -1.
+# near plane. occ ← visible ? max(occ, 0) : -1. With a contraction (kind ≥ 0) the grid is in
+# contracted space: corner y is seen at the world point c_in + h_in ⊙ C⁻¹(y).
 @wp.kernel
 def mark_visible(
     first: int,
     aabb: wp.array(dtype=float),
     res: int,
+    kind: int,
+    inner_aabb: wp.array(dtype=float),
     c2w: wp.array2d(dtype=float),
     intr: wp.array2d(dtype=float),
     n_cams: int,
@@ -252,6 +257,8 @@ def mark_visible(
     while cam < n_cams and visible == 0:
         for corner in range(8):
             p = lo + wp.cw_mul(wp.vec3(float(corner & 1), float((corner >> 1) & 1), float(corner >> 2)), size)
+            if kind >= 0:
+                p = denormalize_point(uncontract(p, kind), inner_aabb)
             if corner_seen(p, c2w, intr, cam, width, height, near_plane):
                 visible = 1
         cam += 1

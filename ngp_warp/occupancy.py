@@ -12,6 +12,10 @@ refreshed from a density callable with instant-ngp / nerfacc semantics:
 
 where :math:`x_c` is a uniformly jittered point in cell :math:`c` and the mean runs over visible
 cells. Cells no training camera sees hold ``-1`` and are never occupied.
+
+With a scene contraction (:mod:`ngp_warp.contraction`) the grid lives in contracted space: one
+cascade over the radius-2 ball's box [-2, 2]³, whose cells are looked up at C(x) by the march
+and filled from densities at C⁻¹ of their points.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import torch
 from torch import nn
 
 from ngp_warp import _wp
+from ngp_warp.contraction import KINDS, uncontract
 from ngp_warp.kernels import occupancy as K
 
 _MAX_LEVELS = 16
@@ -61,9 +66,13 @@ class OccupancyGrid(nn.Module):
         resolution: cells per axis per cascade (a multiple of 4 when ``levels > 1``, so that
             each cascade's cells tile the next finer box exactly).
         levels: number of cascades (1 to 16).
+        contraction: None, or ``"l2"`` / ``"linf"`` (see :func:`ngp_warp.contraction.contract`):
+            then ``aabb`` is the contraction's inner box (world) and the grid one cascade
+            (``levels`` must be 1) over the contracted box [-2, 2]³.
 
     Buffers (follow ``.to()`` and ``state_dict``):
-        aabb: [6] float32. occs: [levels·resolution³] float32 per-cell estimate, -1 = invisible.
+        aabb: [6] float32, the base box in grid coordinates ([-2, 2]³ with a contraction).
+        inner_aabb: [6] float32, only with a contraction: its inner box in the world. occs: [levels·resolution³] float32 per-cell estimate, -1 = invisible.
         threshold: [1] float32, the occupancy threshold of the last update (-1 before any).
         bitfield: [ceil(levels·resolution³ / 8)] uint8, bit ``id & 7`` of byte ``id >> 3`` says
         whether cell ``id = ((level·R + i)·R + j)·R + k`` is occupied.
@@ -75,8 +84,12 @@ class OccupancyGrid(nn.Module):
     A fresh grid has every cell occupied.
     """
 
-    def __init__(self, aabb, resolution: int = 128, levels: int = 1):
+    def __init__(self, aabb, resolution: int = 128, levels: int = 1, contraction: str | None = None):
         super().__init__()
+        if contraction is not None and contraction not in KINDS:
+            raise ValueError(f"contraction must be None or one of {sorted(KINDS)}, got {contraction!r}")
+        if contraction is not None and levels != 1:
+            raise ValueError(f"a contracted grid has one cascade, got levels={levels!r}")
         if not isinstance(resolution, int) or resolution < 1:
             raise ValueError(f"resolution must be a positive int, got {resolution!r}")
         if not isinstance(levels, int) or not 1 <= levels <= _MAX_LEVELS:
@@ -86,11 +99,15 @@ class OccupancyGrid(nn.Module):
         if levels * resolution**3 >= 2**31:
             raise ValueError(f"levels · resolution³ must stay below 2^31, got {levels} · {resolution}³")
         device = aabb.device if isinstance(aabb, torch.Tensor) else None
-        self._aabb_host = _parse_aabb(aabb)
+        self.contraction = contraction
+        self._inner_host = _parse_aabb(aabb) if contraction is not None else None
+        self._aabb_host = _parse_aabb(aabb) if contraction is None else [-2.0] * 3 + [2.0] * 3
         self.resolution = resolution
         self.levels = levels
         n = levels * resolution**3
         self.register_buffer("aabb", torch.tensor(self._aabb_host, dtype=torch.float32, device=device))
+        if contraction is not None:
+            self.register_buffer("inner_aabb", torch.tensor(self._inner_host, dtype=torch.float32, device=device))
         self.register_buffer("occs", torch.zeros(n, dtype=torch.float32, device=device))
         self.register_buffer("threshold", torch.full((1,), -1.0, dtype=torch.float32, device=device))
         self.register_buffer("bitfield", torch.full(((n + 7) // 8,), 255, dtype=torch.uint8, device=device))
@@ -105,6 +122,8 @@ class OccupancyGrid(nn.Module):
 
     def _sync_host_aabb(self) -> None:
         self._aabb_host = _parse_aabb(self.aabb)
+        if self.contraction is not None:
+            self._inner_host = _parse_aabb(self.inner_aabb)
 
     @property
     def n_cells(self) -> int:
@@ -116,8 +135,14 @@ class OccupancyGrid(nn.Module):
         return list(self._aabb_host)
 
     @property
+    def inner_aabb_host(self) -> list[float] | None:
+        """The contraction's inner box as 6 Python floats (None without a contraction)."""
+        return None if self._inner_host is None else list(self._inner_host)
+
+    @property
     def default_step_size(self) -> float:
-        """instant-ngp's marching step: the base box diagonal / 1024 (√3/1024 for the unit cube)."""
+        """instant-ngp's marching step: the base box diagonal / 1024 (√3/1024 for the unit cube;
+        4√3/1024 in contracted space with a contraction)."""
         lo, hi = self._aabb_host[:3], self._aabb_host[3:]
         return math.sqrt(sum((b - a) ** 2 for a, b in zip(lo, hi))) / 1024.0
 
@@ -149,7 +174,7 @@ class OccupancyGrid(nn.Module):
 
         Args:
             step: the training step.
-            density_fn: points [M, 3] float32 → densities [M] or [M, 1] (any float dtype),
+            density_fn: world points [M, 3] float32 → densities [M] or [M, 1] (any float dtype),
                 called under ``torch.no_grad()`` on chunks of at most ``chunk`` points. instant-ngp
                 stores the optical thickness of one step here, i.e. ``σ(x) · step_size``.
         """
@@ -171,6 +196,8 @@ class OccupancyGrid(nn.Module):
         for lo in range(0, n_samples, chunk):
             m = min(chunk, n_samples - lo)
             cells, points = self._draw(lo, m, warmup, n_uniform, seed, prefix)
+            if self.contraction is not None:
+                points = uncontract(points, self.contraction, self.inner_aabb)
             values = density_fn(points)
             if not isinstance(values, torch.Tensor) or values.numel() != m or values.shape[0] != m:
                 shape = tuple(values.shape) if isinstance(values, torch.Tensor) else type(values).__name__
@@ -190,8 +217,9 @@ class OccupancyGrid(nn.Module):
                              near_plane: float = 0.0) -> None:
         """Set cells that no camera sees to -1 (never occupied, never updated).
 
-        A cell is visible when one of its 8 corners projects inside some image
-        (``0 ≤ u ≤ width``, ``0 ≤ v ≤ height``) in front of that camera's ``near_plane``.
+        A cell is visible when one of its 8 corners (with a contraction: C⁻¹ of them) projects
+        inside some image (``0 ≤ u ≤ width``, ``0 ≤ v ≤ height``) in front of that camera's
+        ``near_plane``.
 
         Args:
             c2w: [N, 3, 4] or [N, 4, 4] (or one [3, 4] / [4, 4]) float camera-to-world matrices,
@@ -214,7 +242,8 @@ class OccupancyGrid(nn.Module):
         intr = intrinsics.to(device=dev, dtype=torch.float32).contiguous()
         _wp.launch(
             K.mark_visible, self.n_cells,
-            [self.aabb, self.resolution, c2w_flat, intr, c2w_flat.shape[0],
+            [self.aabb, self.resolution, KINDS.get(self.contraction, -1),
+             self.inner_aabb if self.contraction is not None else self.aabb, c2w_flat, intr, c2w_flat.shape[0],
              float(width), float(height), float(near_plane), self.occs],
             _wp.device_of(self.occs),
         )
@@ -257,4 +286,5 @@ class OccupancyGrid(nn.Module):
         return self.mips
 
     def extra_repr(self) -> str:
-        return f"aabb={self._aabb_host}, resolution={self.resolution}, levels={self.levels}"
+        inner = f", contraction={self.contraction!r}, inner_aabb={self._inner_host}" if self.contraction else ""
+        return f"aabb={self._aabb_host}, resolution={self.resolution}, levels={self.levels}{inner}"

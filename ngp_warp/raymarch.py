@@ -10,6 +10,19 @@ Each ray is clipped to the coarsest cascade's box and to ``[near, far]``, then s
 
 keeping the interval :math:`[t_k, \\min(t_k + \\Delta t_k, t_{far})]` when the cell (of the finest
 cascade containing it) of its midpoint is occupied, and jumping over empty cells (DDA).
+
+On a grid with a scene contraction (``OccupancyGrid(..., contraction=...)``) rays run over
+``[near, far]`` (the grid covers all of space) in world space, with steps that span the
+contracted length :math:`s` (``step_size``, in contracted units) unless the cone step is longer:
+
+.. math::
+
+    \\Delta t_k = \\max\\big(s / \\|J_C(x_k)\\,(d \\oslash h)\\|,\\;
+    \\min(t_k \\cdot \\text{cone\\_angle},\\; s_{max})\\big)
+
+(:func:`ngp_warp.contraction.world_step_length`), and each step is kept when the cell of
+:math:`C(x)` at its midpoint is occupied (one lookup per step, no DDA). The samples stay in
+world space; the field contracts them.
 Samples are produced by count → prefix sum → fill; the only host synchronisation reads the
 total sample count to size the outputs. With fixed steps several threads march one ray, each
 over a segment of its steps (:class:`MarchSchedule`); the samples do not depend on the split.
@@ -25,8 +38,12 @@ from dataclasses import dataclass
 
 import torch
 
+import warp as wp
+
 from ngp_warp import _wp
+from ngp_warp.contraction import KINDS
 from ngp_warp.kernels import raymarch as K
+from ngp_warp.kernels import raymarch_funcs as KF
 from ngp_warp.occupancy import OccupancyGrid, host_seed
 
 _NO_CAP = 2**31 - 1
@@ -50,8 +67,8 @@ def _segments(schedule: MarchSchedule, grid: OccupancyGrid, near: float, far: fl
               cone_angle: float) -> tuple[int, int]:
     """(segments per ray, steps per segment). A fixed-step ray inside the coarsest cascade box
     takes at most min(far − near, box diagonal) / step + 1 steps when |d| = 1 (the last segment
-    takes any remainder); cone steps are marched by one thread per ray."""
-    if cone_angle > 0:
+    takes any remainder); cone steps and contracted grids are marched by one thread per ray."""
+    if cone_angle > 0 or grid.contraction is not None:
         return 1, _NO_CAP
     lo, hi = grid.aabb_host[:3], grid.aabb_host[3:]
     diagonal = math.dist(lo, hi) * 2 ** (grid.levels - 1)
@@ -116,18 +133,18 @@ def _read_total(total: torch.Tensor, before_sync: Callable[[], None] | None) -> 
     return int(host)
 
 
-_configs: dict[tuple, K.MarchConfig] = {}
+_configs: dict[tuple, KF.MarchConfig] = {}
 
 
-def _march_config(*values) -> K.MarchConfig:
+def _march_config(*values) -> KF.MarchConfig:
     """The kernel's settings struct for ``values`` (in field order), built once per configuration."""
     config = _configs.get(values)
     if config is None:
         if len(_configs) >= 64:
             _configs.clear()
-        config = _configs[values] = K.MarchConfig()
-        for name, value in zip(K.MarchConfig.vars, values):
-            setattr(config, name, value)
+        config = _configs[values] = KF.MarchConfig()
+        for name, value in zip(KF.MarchConfig.vars, values):
+            setattr(config, name, wp.vec3(*value) if isinstance(value, tuple) else value)
     return config
 
 
@@ -138,10 +155,12 @@ class MarchOptions:
     Attributes:
         near, far: the ray interval ``[near, far]``, intersected with the coarsest cascade box.
         step_size: the step ``s`` (None: :attr:`OccupancyGrid.default_step_size`, the box
-            diagonal / 1024, i.e. √3/1024 for the unit cube).
+            diagonal / 1024, i.e. √3/1024 for the unit cube); in contracted units on a grid
+            with a contraction.
         cone_angle: 0 for fixed steps, else ``Δt = clip(t·cone_angle, step_size, max_step)``
             (instant-ngp uses 1/256 for large scenes).
-        max_step: largest cone step (None: 1e10, i.e. unbounded).
+        max_step: largest cone step (None: 1e10, i.e. unbounded); with a contraction it
+            bounds only the cone term.
         stratified: jitter each ray's first sample by ``u·Δt``, ``u ~ U[0, 1)`` (for training;
             seeded from torch's default CPU generator, so ``torch.manual_seed`` reproduces it).
         max_samples_per_ray: keep at most this many samples per ray (None: no cap).
@@ -156,6 +175,15 @@ class MarchOptions:
     stratified: bool = False
     max_samples_per_ray: int | None = None
     max_samples: int | None = None
+
+
+def _contraction(grid: OccupancyGrid) -> tuple[int, tuple, tuple]:
+    """(kind flag or NO_CONTRACTION, inner box centre, half extents) of ``grid`` for MarchConfig."""
+    if grid.contraction is None:
+        return KF.NO_CONTRACTION, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+    box = grid.inner_aabb_host
+    return (KINDS[grid.contraction], tuple((box[a] + box[a + 3]) / 2 for a in range(3)),
+            tuple((box[a + 3] - box[a]) / 2 for a in range(3)))
 
 
 def _march_steps(march: MarchOptions, grid: OccupancyGrid) -> tuple[float, float, int]:
@@ -210,7 +238,7 @@ def ray_marching(
     device = _wp.device_of(rays_o)
     n_seg, seg_steps = _segments(SCHEDULES["cpu" if device == "cpu" else "cuda"], grid, near, far, step, cone_angle)
     config = _march_config(grid.resolution, grid.levels, grid.n_mips, grid.mip_cells, near, far, step,
-                           cone_angle, max_step, cap, int(march.stratified), n_seg, seg_steps)
+                           cone_angle, max_step, cap, int(march.stratified), n_seg, seg_steps, *_contraction(grid))
     seed = host_seed() if march.stratified else 0
     common = [rays_o, rays_d, grid.aabb, grid.bitfield, grid.march_mips(), config, seed]
     n_items = n_rays * n_seg  # one per (ray, segment)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import torch
 
+from ngp_warp._reference.contraction import uncontract
+
 f64 = torch.float64
 
 
@@ -58,11 +60,16 @@ def update(occs, cells, values, ema_decay: float, occ_threshold: float):
     return occs, thr, occs > thr
 
 
-def visible_cells(aabb, resolution, levels, c2w, intrinsics, width, height, near_plane=0.0):
-    """[levels·R³] bool: some corner of the cell projects into some OpenGL camera's image."""
+def visible_cells(aabb, resolution, levels, c2w, intrinsics, width, height, near_plane=0.0,
+                  contraction=None, inner_aabb=None):
+    """[levels·R³] bool: some corner of the cell projects into some OpenGL camera's image (with a
+    contraction, the grid is in contracted space and the corners are uncontracted first)."""
     boxes = cell_boxes(aabb, resolution, levels)
     sel = torch.tensor([[i & 1, (i >> 1) & 1, i >> 2] for i in range(8)])
     corners = torch.stack([boxes[:, sel[:, a], a] for a in range(3)], -1)  # [n, 8, 3]
+    if contraction is not None:
+        inner = torch.as_tensor(inner_aabb, dtype=f64)
+        corners = uncontract(corners.reshape(-1, 3), contraction, inner).reshape(corners.shape)
     seen = torch.zeros(boxes.shape[0], dtype=torch.bool)
     for m, (fx, fy, cx, cy) in zip(c2w.to(f64).cpu(), intrinsics.to(f64).cpu()):
         cam = (corners - m[:3, 3]) @ m[:3, :3]

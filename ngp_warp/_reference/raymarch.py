@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ngp_warp._reference import contraction as contraction_ref
 from ngp_warp._reference.occupancy import cascade_cells, center_half
 
 f64 = torch.float64
@@ -54,5 +55,37 @@ def ray_marching(rays_o, rays_d, aabb, occupied: torch.Tensor, *, near=0.0, far=
     ray, t_start, t_end = ray[order], t_start[order], t_end[order]
     mid = o[ray] + d[ray] * (0.5 * (t_start + t_end))[:, None]
     cells, margin = cascade_cells(mid, aabb, res, levels)
+    return {"ray": ray, "t_start": t_start, "t_end": t_end,
+            "occupied": occupied.reshape(-1).cpu()[cells], "margin": margin}
+
+
+def ray_marching_contracted(rays_o, rays_d, inner_aabb, kind: str, occupied: torch.Tensor, *, near=0.0,
+                            far=1e10, step=0.01, cone_angle=0.0, max_step=1e10):
+    """Dense sampler of a contracted grid (one cascade over [-2, 2]³): every world step over
+    [near, far], Δt = max(step / ‖J_C(x)(d ⊘ h)‖, min(t·cone_angle, max_step)) (the speed from
+    autograd, :func:`ngp_warp._reference.contraction.world_step_length`), occupied where the
+    cell of C(midpoint) is. Returns the dict of :func:`ray_marching`."""
+    res = occupied.shape[1]
+    o, d = rays_o.to(f64).cpu(), rays_d.to(f64).cpu()
+    inner = torch.as_tensor(inner_aabb, dtype=f64)
+    t = torch.full((o.shape[0],), float(near), dtype=f64)
+    active = d.abs().sum(-1) > 0
+    rays, starts, ends = [], [], []
+    while active.any():
+        idx = active.nonzero()[:, 0]
+        dt = contraction_ref.world_step_length(o[idx] + d[idx] * t[idx, None], d[idx], step, kind, inner)
+        if cone_angle > 0:
+            dt = torch.maximum(dt, (t[idx] * cone_angle).clamp(max=max_step))
+        rays.append(idx)
+        starts.append(t[idx])
+        ends.append(torch.clamp(t[idx] + dt, max=far))
+        t[idx] = t[idx] + dt
+        active &= t < far
+    ray, t_start, t_end = torch.cat(rays), torch.cat(starts), torch.cat(ends)
+    order = torch.argsort(ray, stable=True)
+    ray, t_start, t_end = ray[order], t_start[order], t_end[order]
+    mid = o[ray] + d[ray] * (0.5 * (t_start + t_end))[:, None]
+    y = contraction_ref.contract(mid, kind, inner)
+    cells, margin = cascade_cells(y, [-2.0] * 3 + [2.0] * 3, res, 1)
     return {"ray": ray, "t_start": t_start, "t_end": t_end,
             "occupied": occupied.reshape(-1).cpu()[cells], "margin": margin}
