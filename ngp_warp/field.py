@@ -7,6 +7,16 @@
     c = \\mathrm{sigmoid}(\\mathrm{MLP}_c([h, \\mathrm{SH}_4(d)]))
 
 Density depends on position only; colour on position and view direction.
+
+Unbounded scenes (``contraction``): positions go through the scene contraction C of
+:mod:`ngp_warp.contraction` before the hash grid, whose box is then the contracted one,
+[-2, 2]³, normalised to [0, 1]³ as (C(x) + 2) / 4; all of space is inside.
+
+Per-image appearance (``FieldConfig.appearance_dim`` = A > 0, NeRF-W / nerfstudio style): a
+learned code :math:`e_i \\in \\mathbb{R}^A` per training image joins the colour MLP's input,
+:math:`c = \\mathrm{sigmoid}(\\mathrm{MLP}_c([h, \\mathrm{SH}_4(d), e_i]))`; density does not see it,
+so it can change colour only (exposure, white balance). Views without a training image (test
+views, renders) use the mean code over the training images.
 """
 
 from __future__ import annotations
@@ -20,7 +30,8 @@ import warp as wp
 
 from ngp_warp import _wp
 from ngp_warp._checks import check_numbers
-from ngp_warp.encoding import HashGridEncoding
+from ngp_warp.contraction import KINDS, contract
+from ngp_warp.hashgrid import HashGridEncoding
 from ngp_warp.kernels import field as K
 
 
@@ -41,10 +52,13 @@ class FieldConfig:
                                             # (pixel_matched_resolution); NGPField alone: 2048
     hidden: int = 64
     geo_features: int = 16
+    appearance_dim: int = 0  # per-image appearance code size A (0: none; real captures: 16)
 
     def check(self) -> None:
         """Raise ValueError naming the first size outside its range (a None finest resolution is
         left to the Trainer)."""
+        if type(self.appearance_dim) is not int or self.appearance_dim < 0:
+            raise ValueError(f"appearance_dim must be a non-negative int, got {self.appearance_dim!r}")
         check_numbers(self, counts=("n_levels", "base_resolution", "hidden", "geo_features", "log2_hashmap_size"),
                       positive=("finest_resolution",), optional=("finest_resolution",))
         if self.n_features_per_level not in (1, 2, 4, 8) or type(self.n_features_per_level) is not int:
@@ -121,16 +135,28 @@ class NGPField(nn.Module):
 
     Args:
         aabb: [6] float ``(xmin, ymin, zmin, xmax, ymax, zmax)``; positions are mapped to
-            [0, 1]^3 inside it before the hash grid.
+            [0, 1]^3 inside it before the hash grid. With ``contraction``, the inner box.
         config: :class:`FieldConfig`.
+        contraction: None, ``"l2"`` or ``"linf"`` (:func:`ngp_warp.contraction.contract`).
+        n_images: training images, one appearance code each (needed when
+            ``config.appearance_dim > 0``).
     """
 
-    def __init__(self, aabb: torch.Tensor, config: FieldConfig | None = None):
+    def __init__(self, aabb: torch.Tensor, config: FieldConfig | None = None, contraction: str | None = None,
+                 n_images: int = 0):
         super().__init__()
         cfg = config or FieldConfig()
+        if contraction is not None and contraction not in KINDS:
+            raise ValueError(f"contraction must be None or one of {sorted(KINDS)}, got {contraction!r}")
+        if cfg.appearance_dim > 0 and (type(n_images) is not int or n_images < 1):
+            raise ValueError(f"appearance codes need n_images ≥ 1, got {n_images!r}")
         self.config = cfg
+        self.contraction = contraction
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(6)
         self.register_buffer("aabb", aabb.clone())
+        # the hash grid's box: the field's box, or the contracted ball's [-2, 2]^3
+        grid_box = aabb.clone() if contraction is None else torch.tensor([-2.0] * 3 + [2.0] * 3)
+        self.register_buffer("grid_aabb", grid_box, persistent=False)
         self.encoding = HashGridEncoding(
             n_input_dims=3,
             n_levels=cfg.n_levels,
@@ -140,16 +166,27 @@ class NGPField(nn.Module):
             desired_resolution=cfg.finest_resolution or INSTANT_NGP_FINEST_RESOLUTION,
         )
         self.density_mlp = _mlp([self.encoding.n_output_dims, cfg.hidden, cfg.geo_features])
-        self.color_mlp = _mlp([cfg.geo_features + 16, cfg.hidden, cfg.hidden, 3])
+        self.color_mlp = _mlp([cfg.geo_features + 16 + cfg.appearance_dim, cfg.hidden, cfg.hidden, 3])
+        self.appearance = None
+        if cfg.appearance_dim > 0:
+            self.appearance = nn.Embedding(n_images, cfg.appearance_dim)
+            nn.init.normal_(self.appearance.weight, std=0.01)
 
     def mlp_parameters(self) -> list[nn.Parameter]:
-        """MLP weights (the ones that get weight decay)."""
-        return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters())
+        """MLP weights and appearance codes (the ones that get weight decay)."""
+        codes = [] if self.appearance is None else list(self.appearance.parameters())
+        return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters()) + codes
+
+    def _grid_points(self, positions: torch.Tensor) -> torch.Tensor:
+        """World positions [N, 3] → the hash grid's coordinates: themselves, or C(x)."""
+        if self.contraction is None:
+            return positions
+        return contract(positions.detach().float().contiguous(), self.contraction, self.aabb)
 
     def _unit(self, positions: torch.Tensor) -> torch.Tensor:
-        """Positions mapped from the box to [0, 1]^3, contiguous (the encoding's input)."""
-        lo, hi = self.aabb[:3], self.aabb[3:]
-        return ((positions - lo) / (hi - lo)).contiguous()
+        """Positions mapped from the (contracted) box to [0, 1]^3, contiguous (the encoding's input)."""
+        lo, hi = self.grid_aabb[:3], self.grid_aabb[3:]
+        return ((self._grid_points(positions) - lo) / (hi - lo)).contiguous()
 
     def _features(self, positions: torch.Tensor) -> torch.Tensor:
         return self.encoding(self._unit(positions))
@@ -172,6 +209,9 @@ class NGPField(nn.Module):
         return torch.mm(h, layers[-1][:1].t())
 
     def _inside(self, positions: torch.Tensor) -> torch.Tensor:
+        """[N] bool: inside the box (everywhere with a contraction)."""
+        if self.contraction is not None:
+            return torch.ones(positions.shape[0], dtype=torch.bool, device=positions.device)
         return ((positions >= self.aabb[:3]) & (positions <= self.aabb[3:])).all(-1)
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
@@ -182,15 +222,29 @@ class NGPField(nn.Module):
             h = self._log_density(positions)
             if h.dtype not in (torch.float32, torch.bfloat16):  # e.g. float16 autocast
                 h = h.float()
-            return density_from_log(h, positions.contiguous(), self.aabb)
+            return density_from_log(h, self._grid_points(positions).contiguous(), self.grid_aabb)
         h = self._geometry(positions)
         return trunc_exp(h[:, 0].float()) * self._inside(positions)
 
-    def forward(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def appearance_codes(self, image_indices: torch.Tensor | None, n: int, device) -> list[torch.Tensor]:
+        """[] without appearance codes, else [[n, A]]: the codes of ``image_indices`` ([n] int64
+        training-image indices), or the mean code when None."""
+        if self.appearance is None:
+            return []
+        if image_indices is None:
+            return [self.appearance.weight.mean(0, keepdim=True).expand(n, -1)]
+        if image_indices.shape != (n,):
+            raise ValueError(f"image_indices must be [{n}], got {tuple(image_indices.shape)}")
+        return [self.appearance(image_indices.to(device=device, dtype=torch.long))]
+
+    def forward(self, positions: torch.Tensor, directions: torch.Tensor,
+                image_indices: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(σ [N] float32, zero outside the box; rgb [N, 3] float32) at positions [N, 3] seen along
-        unit directions [N, 3]."""
+        unit directions [N, 3], in training images ``image_indices`` ([N] int64; None: the mean
+        appearance code; ignored without appearance codes)."""
         h = self._geometry(positions)
         sigma = trunc_exp(h[:, 0].float()) * self._inside(positions)
         sh = spherical_harmonics_deg4(directions).to(h.dtype)
-        rgb = torch.sigmoid(self.color_mlp(torch.cat([h, sh], dim=-1)).float())
+        codes = [c.to(h.dtype) for c in self.appearance_codes(image_indices, h.shape[0], h.device)]
+        rgb = torch.sigmoid(self.color_mlp(torch.cat([h, sh, *codes], dim=-1)).float())
         return sigma, rgb
