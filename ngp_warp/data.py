@@ -28,8 +28,8 @@ from ngp_warp.atomic import atomic_write_text
 from ngp_warp.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, generate_rays
 from ngp_warp.colmap import colmap_to_transforms, read_colmap_model
 from ngp_warp.data_error import DataError, short
-from ngp_warp.transforms_json import (NGP_SCENE_KEYS, Frame, frame_camera, read_frames, read_json,
-                                      world_box, world_from_scene)
+from ngp_warp.transforms_json import (NGP_SCENE_KEYS, Frame, contraction_key, frame_camera, read_frames,
+                                      read_json, world_box, world_from_scene)
 
 __all__ = ["DataError", "Split", "Scene", "load_scene", "generate_rays", "image_rays", "downscale_image",
            "normalisation_record", "write_normalisation"]
@@ -120,6 +120,8 @@ class Scene:
         world_from_scene: [4, 4] float64 similarity from the scene's frame to the capture's
             (COLMAP's world for COLMAP scenes): world point = M @ (scene point, 1). Identity
             (the default) when the files are already in their own world frame.
+        contraction: the scene contraction the files ask for (``"l2"``, ``"linf"``; the
+            ``contraction`` key), else None (see :mod:`ngp_warp.contraction_choice`).
     """
 
     train: Split
@@ -131,6 +133,7 @@ class Scene:
     source: str
     occupancy_aabb: torch.Tensor | None = None
     world_from_scene: torch.Tensor | None = None
+    contraction: str | None = None
 
     def __post_init__(self):
         if self.occupancy_aabb is None:
@@ -345,4 +348,5 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
         source=kind if kind == "colmap" else "instant-ngp" if is_ngp else "nerf-synthetic",
         occupancy_aabb=torch.tensor(cascade_box, dtype=torch.float32),
         world_from_scene=torch.from_numpy(world_from_scene(metas[0], first)),
+        contraction=contraction_key(metas[0], first),
     )

@@ -9,6 +9,8 @@
   be overridden per frame. instant-ngp maps world p to its unit cube as p * scale + offset
   (default 0.33 and 0.5) and lets the field fill [0.5 - aabb_scale/2, 0.5 + aabb_scale/2]^3
   there; the scene stays in world coordinates (the transform matrices as given).
+* ngp-warp's own key ``contraction`` (``"l2"`` or ``"linf"``): the capture is unbounded and the
+  field should contract space around ``aabb`` (:func:`contraction_key`).
 
 Frames whose image is missing are skipped, as instant-ngp does, with one warning per file.
 """
@@ -29,7 +31,7 @@ from ngp_warp.data_error import DataError, number, short
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 NGP_SCALE = 0.33  # instant-ngp's default world -> unit-cube scale (NERF_SCALE)
 NGP_OFFSET = (0.5, 0.5, 0.5)
-NGP_SCENE_KEYS = ("aabb_scale", "scale", "offset", "aabb")
+NGP_SCENE_KEYS = ("aabb_scale", "scale", "offset", "aabb", "contraction")
 MAX_AABB_SCALE = 2**15  # 16 occupancy cascades
 _UNSUPPORTED_LENS_KEYS = ("ftheta_p0", "latlong", "equirectangular")
 PERSPECTIVE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
@@ -229,3 +231,15 @@ def world_from_scene(meta: dict, source: Path) -> np.ndarray:
     if m.shape != (4, 4) or not np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0]):
         raise DataError(f"{source}: world_from_scene must be a 4x4 matrix with last row 0 0 0 1")
     return m
+
+
+CONTRACTIONS = ("l2", "linf")
+
+
+def contraction_key(meta: dict, source: Path) -> str | None:
+    """ngp-warp's ``contraction`` key: ``"l2"`` (mip-NeRF 360) or ``"linf"`` (nerfstudio), the
+    scene contraction the capture wants (:mod:`ngp_warp.contraction`); None when absent or null."""
+    value = meta.get("contraction")
+    if value is not None and value not in CONTRACTIONS:
+        raise DataError(f"{source}: contraction must be one of {', '.join(CONTRACTIONS)} or null, got {short(value)}")
+    return value

@@ -1,0 +1,85 @@
+"""Per-scene defaults of the march and the field: cone steps, contraction, appearance codes.
+
+* Cone steps (instant-ngp's ``calc_dt``): scenes larger than the unit box (``aabb_scale`` > 1,
+  i.e. more than one occupancy cascade) and unbounded scenes step by
+  ``Δt = clamp(t / 256, √3/1024, √3)`` in instant-ngp unit-cube lengths: the finest cascade's
+  box diagonal / 1024 up to that whole diagonal (instant-ngp's ``MIN_CONE_STEPSIZE`` and
+  ``MAX_CONE_STEPSIZE`` with its 8 cascades of 128³ cells). NeRF-synthetic scenes keep fixed steps.
+* Contraction: the files' ``contraction`` key, else mip-NeRF 360's L2 contraction for captures
+  (not NeRF-synthetic) whose cameras surround a centre and look inward
+  (:func:`cameras_surround_centre`), else none. Its inner box is the finest cascade's box,
+  grown about its centre to hold every training camera.
+* Appearance codes: 16 per training image for captures (exposure and white balance vary),
+  none for NeRF-synthetic renders.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ngp_warp.data import Scene
+from ngp_warp.transforms_json import CONTRACTIONS
+
+CONE_ANGLE = 1.0 / 256.0  # instant-ngp's cone angle for aabb_scale > 1
+APPEARANCE_DIM = 16
+_MIN_CAMERAS = 8  # fewer cameras never count as surrounding a centre
+_MAX_RESULTANT = 0.5  # |mean horizontal direction from the centre to the cameras|: 0 for a ring
+_MIN_INWARD = 0.8  # mean cosine between a camera's view axis and its direction to the centre
+
+
+def cone_steps(scene: Scene, contraction: str | None) -> tuple[float, float, float]:
+    """(cone_angle, min step, max step) in world lengths for ``scene``: (0, √3/1024·L, √3·L)
+    for one cascade without contraction, else (1/256, ...), L the finest cascade box's side."""
+    box = scene.occupancy_aabb.double()
+    diagonal = float((box[3:] - box[:3]).norm())
+    cone = CONE_ANGLE if scene.occupancy_levels > 1 or contraction is not None else 0.0
+    return cone, diagonal / 1024.0, diagonal
+
+
+def cameras_surround_centre(c2w: torch.Tensor) -> bool:
+    """Whether the cameras (``c2w`` [N, 3, 4] float, OpenGL: looking down −z) form a 360° capture:
+    at least 8 cameras; their centre q (the point nearest every view axis, least squares);
+    seen from q, the cameras' directions projected on the plane normal to the mean camera up
+    axis nearly cancel (mean vector shorter than 0.5; a full ring gives 0, a half circle
+    2/π ≈ 0.64); and they look at q (mean cosine between view axis and direction to q ≥ 0.8)."""
+    if c2w.shape[0] < _MIN_CAMERAS:
+        return False
+    m = c2w.double().cpu()
+    centres, forward = m[:, :, 3], -torch.nn.functional.normalize(m[:, :, 2], dim=-1)
+    projector = torch.eye(3, dtype=torch.float64) - forward[:, :, None] * forward[:, None, :]
+    q = torch.linalg.lstsq(projector.sum(0), (projector @ centres[:, :, None]).sum(0)).solution[:, 0]
+    outward = torch.nn.functional.normalize(centres - q, dim=-1)
+    inward = float(-(outward * forward).sum(-1).mean())
+    up = torch.nn.functional.normalize(m[:, :, 1].mean(0), dim=0)
+    flat = torch.nn.functional.normalize(outward - (outward @ up)[:, None] * up, dim=-1)
+    return inward >= _MIN_INWARD and float(flat.mean(0).norm()) < _MAX_RESULTANT
+
+
+def choose_contraction(setting: str | None, scene: Scene) -> str | None:
+    """The contraction to train with: ``setting`` itself (``"l2"``, ``"linf"`` or None), or with
+    ``"auto"`` the scene's own (see the module docstring)."""
+    if setting != "auto":
+        if setting is not None and setting not in CONTRACTIONS:
+            raise ValueError(f"contraction must be 'auto', None or one of {', '.join(CONTRACTIONS)}, got {setting!r}")
+        return setting
+    if scene.contraction is not None:
+        return scene.contraction
+    if scene.source != "nerf-synthetic" and cameras_surround_centre(scene.train.c2w):
+        return "l2"
+    return None
+
+
+def contraction_box(scene: Scene) -> torch.Tensor:
+    """[6] float32 inner box of the contraction: the finest cascade's box, grown about its centre
+    (keeping its proportions) until it holds every training camera."""
+    box = scene.occupancy_aabb.double()
+    centre, half = (box[:3] + box[3:]) / 2, (box[3:] - box[:3]) / 2
+    reach = ((scene.train.c2w[:, :, 3].double() - centre).abs() / half).amax()
+    grow = max(1.0, float(reach) * 1.05)
+    return torch.cat([centre - half * grow, centre + half * grow]).float()
+
+
+def appearance_dim(scene: Scene) -> int:
+    """Appearance code size for ``scene``: 0 for NeRF-synthetic, else APPEARANCE_DIM."""
+    return 0 if scene.source == "nerf-synthetic" else APPEARANCE_DIM
+

@@ -1,0 +1,67 @@
+"""Per-scene defaults: the contraction key, the 360° capture test, cone steps, appearance codes."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from ngp_warp.data import DataError, load_scene
+from ngp_warp.scene_defaults import (appearance_dim, cameras_surround_centre, choose_contraction, cone_steps,
+                                     contraction_box)
+from ngp_warp.scene_unbounded import write_unbounded_scene
+
+
+def look_at(eyes, target, up=(0.0, 0.0, 1.0)):
+    """[N, 3, 4] OpenGL c2w of cameras at ``eyes`` looking at ``target``."""
+    out = []
+    for e in eyes:
+        back = torch.nn.functional.normalize(e - target, dim=0)
+        right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor(up), back), dim=0)
+        out.append(torch.cat([torch.stack([right, torch.linalg.cross(back, right), back], 1), e[:, None]], 1))
+    return torch.stack(out)
+
+
+def ring(n, arc=2 * math.pi, centre=(1.0, -2.0, 0.5)):
+    a = torch.linspace(0, arc, n + 1)[:n] if arc == 2 * math.pi else torch.linspace(0, arc, n)
+    c = torch.tensor(centre)
+    eyes = torch.stack([4 * a.cos(), 4 * a.sin(), 1.5 + 0.3 * (3 * a).sin()], 1) + c
+    return look_at(eyes, c + torch.randn(3) * 0.1)
+
+
+def test_cameras_surround_centre():
+    torch.manual_seed(0)
+    assert cameras_surround_centre(ring(24))
+    assert not cameras_surround_centre(ring(24, arc=math.pi))  # a half circle: not 360°
+    assert not cameras_surround_centre(ring(6))  # too few
+    eyes = torch.stack([torch.linspace(-1, 1, 20), torch.zeros(20), torch.full((20,), 4.0)], 1)
+    forward_facing = look_at(eyes, torch.tensor([0.0, 0.0, -100.0]), up=(0.0, 1.0, 0.0))
+    assert not cameras_surround_centre(forward_facing)
+    outward = ring(24)
+    outward[:, :, :3] = -outward[:, :, :3]  # the same ring looking away from the centre
+    assert not cameras_surround_centre(outward)
+
+
+def test_unbounded_scene_asks_for_contraction_and_gets_cone_steps(tmp_path):
+    scene = load_scene(write_unbounded_scene(tmp_path / "u", width=16, height=16, n_train=12, n_test=2))
+    assert scene.contraction == "l2" and scene.occupancy_levels == 1
+    assert choose_contraction("auto", scene) == "l2" and choose_contraction(None, scene) is None
+    assert choose_contraction("linf", scene) == "linf"
+    box = contraction_box(scene)
+    assert (box[:3] <= scene.train.c2w[:, :, 3].amin(0)).all() and (box[3:] >= scene.train.c2w[:, :, 3].amax(0)).all()
+    assert (box[:3] <= -4).all() and (box[3:] >= 4).all()
+    cone, lo, hi = cone_steps(scene, "l2")
+    assert cone == 1 / 256 and lo == pytest.approx(8 * math.sqrt(3) / 1024) and hi == pytest.approx(8 * math.sqrt(3))
+    assert cone_steps(scene, None)[0] == 0.0 and appearance_dim(scene) == 16
+    with pytest.raises(ValueError, match="contraction must be"):
+        choose_contraction("sphere", scene)
+
+
+def test_bad_contraction_key_is_one_line_data_error(tmp_path):
+    folder = write_unbounded_scene(tmp_path / "u", width=8, height=8, n_train=3, n_test=1)
+    meta = json.loads((folder / "transforms_train.json").read_text())
+    meta["contraction"] = "sphere"
+    (folder / "transforms_train.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match="contraction must be one of l2, linf or null") as err:
+        load_scene(folder)
+    assert "\n" not in str(err.value)
