@@ -187,3 +187,92 @@ def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100
                 except OSError:
                     break
     return out
+
+
+# ---- the demo scene in a textured room (for structure from motion) --------------------------
+ROOM_FLOOR = -0.5  # z of the floor, just under the objects
+ROOM_RADIUS = 6.0  # radius of the room's cylindrical wall (about z), beyond every camera
+ROOM_TEXELS = (170.0, 64.0)  # texels per scene unit of the floor's and the wall's textures
+ROOM_WALL_HEIGHT = 6.0  # textured height of the wall above the floor (higher up it repeats, mirrored)
+ROOM_CELLS = (4, 8, 16, 32, 64)  # value-noise octaves: lattice spacing in texels
+
+
+def _value_noise(height: int, width: int, generator: torch.Generator) -> torch.Tensor:
+    """[3, height, width] float32 in [0, 1]: octaves of bicubic value noise, mostly grey (SIFT
+    works on intensity), each octave weighted by its lattice spacing, contrast-stretched."""
+    noise = torch.zeros(1, 3, height, width)
+    for cells in ROOM_CELLS:
+        lattice = torch.rand(1, 3, height // cells + 2, width // cells + 2, generator=generator)
+        lattice[:, 1:] = 0.6 * lattice[:, :1] + 0.4 * lattice[:, 1:]  # green, blue follow red
+        up = torch.nn.functional.interpolate(lattice, scale_factor=cells, mode="bicubic", align_corners=False)
+        noise += cells ** 0.5 * up[..., :height, :width]
+    noise = noise - noise.mean(dim=(2, 3), keepdim=True)
+    return (0.5 + noise[0] / (3.0 * noise.std())).clamp(0.0, 1.0)
+
+
+def _room_colour(origin: torch.Tensor, d: torch.Tensor, floor: torch.Tensor, wall: torch.Tensor) -> torch.Tensor:
+    """Colour [N, 3] where rays (``origin`` [3], directions ``d`` [N, 3]) meet the room: the
+    floor z = F (t = (F - o_z) / d_z) or the wall |o_xy + t d_xy| = R, whichever is nearer."""
+    a = d[:, 0] ** 2 + d[:, 1] ** 2
+    b = origin[0] * d[:, 0] + origin[1] * d[:, 1]
+    c = origin[0] ** 2 + origin[1] ** 2 - ROOM_RADIUS ** 2  # < 0: the camera is inside
+    t_wall = (-b + torch.sqrt(b * b - a * c)) / a.clamp_min(1e-12)
+    t_floor = torch.where(d[:, 2] < 0, (ROOM_FLOOR - origin[2]) / d[:, 2].clamp(max=-1e-12), math.inf)
+    p = origin + torch.minimum(t_wall, t_floor)[:, None] * d
+    on_floor = t_floor < t_wall
+    floor_uv = p[:, :2] / ROOM_RADIUS  # grid_sample's [-1, 1] spans the floor's square
+    arc = torch.atan2(p[:, 1], p[:, 0]) / math.pi
+    wall_uv = torch.stack([arc, 2.0 * (p[:, 2] - ROOM_FLOOR) / ROOM_WALL_HEIGHT - 1.0], -1)
+
+    def sample(texture: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        grid = uv.reshape(1, 1, -1, 2).float()
+        return torch.nn.functional.grid_sample(texture[None], grid, align_corners=False,
+                                               padding_mode="reflection")[0, :, 0].T
+
+    return torch.where(on_floor[:, None], sample(floor, floor_uv), sample(wall, wall_uv))
+
+
+def render_room_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
+                      supersample: int = 2, seed: int = 0) -> torch.Tensor:
+    """The demo scene standing in a room whose floor and wall carry multi-scale noise, as a
+    photograph of it would look: the objects' own textures are too plain for feature matching.
+
+    The floor (z = ``ROOM_FLOOR``) lies under every object and the wall (radius ``ROOM_RADIUS``)
+    beyond them, so for a camera inside the room each ray meets the room only behind the
+    objects: rgb = alpha c_objects + (1 - alpha) c_room, where c_room is the mean over all of the
+    pixel's rays (exact but at the objects' outlines). Each pixel averages ``supersample``²
+    stratified rays, the same rays :func:`render_demo_views` traces.
+
+    Args:
+        c2w: [V, 3, 4] float32 camera-to-world, OpenGL convention, on the CPU; every camera
+            inside the room (above the floor, within the wall).
+        intrinsics: [V, 4] float32 fx, fy, cx, cy in pixels.
+        width, height: image size in pixels.
+        supersample: ss, rays per pixel side.
+        seed: picks the room's noise.
+
+    Returns:
+        [V, H, W, 3] float32 RGB in [0, 1].
+    """
+    objects = render_demo_views(c2w, intrinsics, width, height, supersample)  # validates the arguments
+    origins = c2w[:, :, 3].double()
+    if (origins[:, 2] <= ROOM_FLOOR).any() or (origins[:, :2].norm(dim=1) >= ROOM_RADIUS).any():
+        raise ValueError(f"every camera must be inside the room (z > {ROOM_FLOOR}, |xy| < {ROOM_RADIUS})")
+    generator = torch.Generator().manual_seed(seed)
+    side = int(2 * ROOM_RADIUS * ROOM_TEXELS[0])
+    floor = _value_noise(side, side, generator)
+    wall_texels = (int(ROOM_WALL_HEIGHT * ROOM_TEXELS[1]), int(2 * math.pi * ROOM_RADIUS * ROOM_TEXELS[1]))
+    wall = _value_noise(*wall_texels, generator)
+    ss = supersample
+    sub = (torch.arange(ss, dtype=torch.float64) + 0.5) / ss
+    u = (torch.arange(width, dtype=torch.float64)[:, None] + sub).reshape(-1)
+    w = (torch.arange(height, dtype=torch.float64)[:, None] + sub).reshape(-1)
+    room = torch.empty(len(c2w), height, width, 3)
+    for v, (m, (fx, fy, cx, cy)) in enumerate(zip(c2w.double(), intrinsics.double())):
+        y, x = torch.meshgrid(-(w - cy) / fy, (u - cx) / fx, indexing="ij")
+        d = torch.stack([x, y, -torch.ones_like(x)], -1).reshape(-1, 3) @ m[:, :3].T
+        d = d / d.norm(dim=1, keepdim=True)
+        colour = _room_colour(m[:, 3], d, floor, wall).reshape(height, ss, width, ss, 3)
+        room[v] = colour.mean(dim=(1, 3)).float()
+    alpha = objects[..., 3:]
+    return alpha * objects[..., :3] + (1.0 - alpha) * room
