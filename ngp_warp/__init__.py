@@ -18,7 +18,7 @@ _wp.init()
 # Bound eagerly: the function ``composite`` shares its name with its module, and an eager
 # from-import keeps the package attribute pointing at the function.
 from ngp_warp.composite import composite  # noqa: E402
-from ngp_warp.encoding import HashGridEncoding  # noqa: E402
+from ngp_warp.hashgrid import HashGridEncoding  # noqa: E402
 from ngp_warp.field import NGPField  # noqa: E402
 from ngp_warp.occupancy import OccupancyGrid  # noqa: E402
 from ngp_warp.prune import prune_samples  # noqa: E402
