@@ -27,10 +27,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ngp_warp.config import TrainConfig, apply_overrides
 from ngp_warp.data import DataError, load_scene
 from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.metrics import psnr
-from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
+from ngp_warp.trainer import Trainer
 
 
 def _commit() -> str:

@@ -20,13 +20,28 @@ from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
 import ngp_warp.render
-import ngp_warp.trainer
 from bench_train import scene_or_usage_error
-from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides
+from ngp_warp.config import TrainConfig, apply_overrides
+from ngp_warp.trainer import Trainer
+
+# Trainer phases (ngp_warp.train_step.StepPhases) → table rows; indented rows run inside the
+# unindented one above them (not added to the step's total).
+PHASE_ROWS = {
+    "grid_update": "occupancy grid update",
+    "sample_batch": "sample batch",
+    "render": "render (all of it)",
+    "optimizer_update": "    optimizer and MLP average (the last step's, queued in the march or a grid refresh)",
+    "density": "  density passes (no grad; the grid refresh's included)",
+    "field": "  field forward",
+    "loss": "loss forward",
+    "distortion": "distortion forward",
+    "backward": "backward (autograd engine)",
+}
 
 
 def time_phases(trainer: Trainer) -> dict[str, float]:
-    """Wrap the step's phases so that their host seconds add up in the returned dict."""
+    """Time the step's phases (through :meth:`Trainer.instrument`, and the march and prune
+    inside the render op) so that their host seconds add up in the returned dict."""
     spent: dict[str, float] = defaultdict(float)
 
     def timed(name, fn):
@@ -37,20 +52,10 @@ def time_phases(trainer: Trainer) -> dict[str, float]:
             return result
         return wrapper
 
-    trainer.sample_batch = timed("sample batch", trainer.sample_batch)
-    trainer.grid.update = timed("occupancy grid update", trainer.grid.update)
-    trainer.render = timed("render (all of it)", trainer.render)
+    trainer.instrument(lambda phase, fn: timed(PHASE_ROWS[phase], fn))
+    # inside the render op: its module's own names for the march and the pruning
     ngp_warp.render.ray_marching = timed("  march (+ its sync)", ngp_warp.render.ray_marching)
     ngp_warp.render.prune_samples = timed("  prune", ngp_warp.render.prune_samples)
-    trainer.field_fn = timed("  field forward", trainer.field_fn)
-    for opt in trainer.optimizers():
-        opt.step = timed("    optimizer (the last step's, queued in the march)", opt.step)
-    ngp_warp.trainer.ray_loss = timed("loss forward", ngp_warp.trainer.ray_loss)
-    ngp_warp.trainer.distortion_loss_packed = timed("distortion forward", ngp_warp.trainer.distortion_loss_packed)
-    torch.Tensor.backward = timed("backward (autograd engine)", torch.Tensor.backward)
-    torch._foreach_lerp_ = timed("    MLP average lerp (likewise)", torch._foreach_lerp_)
-    make_sigma_fn = trainer._sigma_fn  # returns the density function the render then calls
-    trainer._sigma_fn = lambda: timed("  density passes (no grad; the grid refresh's included)", make_sigma_fn())
     return spent
 
 

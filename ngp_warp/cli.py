@@ -15,7 +15,7 @@ class UserError(Exception):
 
 def _device(name: str | None) -> str:
     from ngp_warp import _wp
-    from ngp_warp.trainer import default_device
+    from ngp_warp.config import default_device
 
     if name in (None, "auto"):
         return default_device()
@@ -41,7 +41,7 @@ def _writable_dir(path: Path) -> Path:
 
 def _with_settings(cfg, args):
     """``cfg`` with ``--target-samples`` and the ``--set KEY=VALUE`` settings applied."""
-    from ngp_warp.trainer import apply_overrides
+    from ngp_warp.config import apply_overrides
 
     if args.target_samples:
         cfg.target_samples = args.target_samples
@@ -54,7 +54,7 @@ def _with_settings(cfg, args):
 
 
 def _train_config(args):
-    from ngp_warp.trainer import TrainConfig
+    from ngp_warp.config import TrainConfig
 
     return _with_settings(TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed), args)
 
@@ -137,8 +137,8 @@ def demo_config(device: str, steps: int | None, seconds: float | None, seed: int
     occupancy grid and a longer step keep 2 cores busy on useful samples; the finest hash-grid
     level follows the images (104 cells here; measured on 2 cores after 150 s: 33.8 dB, against
     32.7 dB with 512 cells, see benchmarks/RESULTS.md)."""
+    from ngp_warp.config import TrainConfig
     from ngp_warp.field import FieldConfig
-    from ngp_warp.trainer import TrainConfig
 
     if steps is None and seconds is None:
         seconds = 150.0 if device == "cpu" else 30.0
@@ -225,7 +225,7 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--target-samples", type=_positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
-                             "(repeatable; see ngp_warp.trainer.TrainConfig)")
+                             "(repeatable; see ngp_warp.config.TrainConfig)")
         sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
         sp.add_argument("--frames", type=_positive(int), default=60, help="orbit video frames")
 

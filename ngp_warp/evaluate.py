@@ -10,10 +10,21 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
+from tqdm import tqdm
+
 from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.metrics import SSIM_WINDOW, psnr, ssim
-from ngp_warp.progress import Progress
-from ngp_warp.trainer import Trainer, composite_on
+from ngp_warp.trainer import Trainer
+
+
+def composite_on(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """Images as the renders are scored against them: [..., 3|4] uint8 pixels → [..., 3]
+    float32 in [0, 1], alpha blended over ``background`` ([3] or broadcastable float)."""
+    px = rgba.float() / 255.0
+    if px.shape[-1] == 3:
+        return px
+    a = px[..., 3:]
+    return px[..., :3] * a + background * (1.0 - a)
 
 
 def to_uint8(img: torch.Tensor) -> np.ndarray:
@@ -47,7 +58,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     """Render every test view on white, score it, write renders/ depth/ and metrics.json."""
     out_dir = Path(out_dir)
     per_image = []
-    bar = Progress("eval", total=len(trainer.scene.test.names), enabled=show_progress)
+    bar = tqdm(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
         for name, out, gt in iter_test_renders(trainer):
             stem = Path(name).stem
@@ -57,7 +68,8 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
             per_image.append({"image": name, "psnr": p, "ssim": s})
             iio.imwrite(renders / f"{stem}.png", to_uint8(out["rgb"]))
             iio.imwrite(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
-            bar.update(len(per_image), psnr=f"{p:.2f}")
+            bar.set_postfix(psnr=f"{p:.2f}", refresh=False)
+            bar.update()
         bar.close()
     metrics = {
         "psnr": float(np.mean([m["psnr"] for m in per_image])),
@@ -104,13 +116,10 @@ def render_orbit(trainer: Trainer, path: Path, n_frames: int = 60, fps: int = 20
     split = trainer.scene.test
     center = ((trainer.scene.aabb[:3] + trainer.scene.aabb[3:]) / 2).cpu()
     cams = orbit_cameras(split.c2w, center, n_frames)
-    bar = Progress("orbit", total=n_frames, enabled=show_progress)
     frames = []
-    for i, cam in enumerate(cams):
+    for cam in tqdm(cams, desc="orbit", unit="frame", disable=not show_progress):
         out = trainer.render_image(cam, split.intrinsics[0], split.width, split.height, background=1.0)
         frames.append(to_uint8(out["rgb"]))
-        bar.update(i + 1)
-    bar.close()
     path = Path(path)
     if path.suffix.lower() == ".mp4":
         try:

@@ -12,7 +12,8 @@ from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.field import FieldConfig
 from ngp_warp.metrics import psnr
 from ngp_warp.scene import CAMERA_ANGLE_X, CAMERA_RADIUS, write_demo_scene
-from ngp_warp.trainer import TrainConfig, Trainer, apply_overrides, device_defaults, pixel_matched_resolution
+from ngp_warp.config import TrainConfig, apply_overrides, device_defaults, pixel_matched_resolution
+from ngp_warp.trainer import Trainer
 
 
 @pytest.fixture(scope="module")
@@ -57,16 +58,17 @@ def test_deferred_optimizer_updates_equal_updates_at_the_end_of_each_step(tiny_s
     # the lr warm-up and the weight average's decay schedule.
     def train(flush_each_step: bool) -> list[torch.Tensor]:
         trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cpu")
-        mlp_step, lrs = trainer.optimizer.step, []
+        mlp_adam = trainer.weights.mlp_adam
+        mlp_step, lrs = mlp_adam.step, []
 
         def recording_step(*args, **kwargs):  # each update's lr: the schedule's at its own step
-            lrs.append(trainer.optimizer.param_groups[0]["lr"])
+            lrs.append(mlp_adam.param_groups[0]["lr"])
             return mlp_step(*args, **kwargs)
 
-        trainer.optimizer.step = recording_step
+        mlp_adam.step = recording_step
         for _ in range(20):
             trainer.step(progress=trainer.step_count / 20)
-            assert trainer._pending_update is not None  # the update waits for the next step
+            assert trainer.weights.pending  # the update waits for the next step
             if flush_each_step:
                 trainer.flush()
         trainer.flush()
@@ -100,7 +102,7 @@ def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam)
     b = loaded.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height)
     torch.testing.assert_close(a["rgb"], b["rgb"], rtol=0, atol=0)
     torch.testing.assert_close(a["depth"], b["depth"], rtol=0, atol=0)
-    for mine, theirs in zip(trainer.optimizers(), loaded.optimizers(), strict=True):
+    for mine, theirs in zip(trainer.weights.optimizers(), loaded.weights.optimizers(), strict=True):
         for key, state in mine.state_dict()["state"].items():
             saved = theirs.state_dict()["state"][key]
             assert all(torch.equal(v, saved[k]) if torch.is_tensor(v) else v == saved[k] for k, v in state.items())
@@ -112,7 +114,7 @@ def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam)
 
 def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scene):
     trainer = Trainer(load_scene(tiny_scene), tiny_config(25), device="cpu")
-    opt, table = trainer.table_optimizer, trainer.field.encoding.params
+    opt, table = trainer.weights.table_adam, trainer.field.encoding.params
     start = table.detach().double().clone()
     trajectory = []  # (decay, table after the step) per step
     step = opt.step
@@ -124,7 +126,7 @@ def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scen
         trajectory.append((opt.param_groups[0]["average_decay"], table.detach().double().clone()))
         return result
 
-    mlp_step = trainer.optimizer.step
+    mlp_step = trainer.weights.mlp_adam.step
 
     def recording_mlp_step(*args, **kwargs):
         result = mlp_step(*args, **kwargs)
@@ -132,7 +134,7 @@ def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scen
         return result
 
     mlp_start = [p.detach().double().clone() for p in mlp]
-    opt.step, trainer.optimizer.step = recording_step, recording_mlp_step
+    opt.step, trainer.weights.mlp_adam.step = recording_step, recording_mlp_step
     trainer.train(show_progress=False)
     decays = [min(0.995, (1 + s) / (10 + s)) for s in range(25)]  # the trainer's schedule
     assert [d for d, _ in trajectory] == pytest.approx(decays)
@@ -141,7 +143,7 @@ def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scen
         dense = torch.lerp(dense, weights, 1 - decay)
         mlp_dense = [torch.lerp(a, w, 1 - decay) for a, w in zip(mlp_dense, mlp_weights)]
     assert (dense - table.double()).abs().max() > 1e-4
-    assert not any(a.requires_grad for a in trainer.averaged)  # averaging stays out of autograd
+    assert not any(a.requires_grad for a in trainer.weights.averaged)  # averaging stays out of autograd
     averaged = dict(zip(map(id, trainer.field.parameters()), trainer.averaged_weights()))
     torch.testing.assert_close(averaged[id(table)].double(), dense, rtol=0, atol=1e-6)
     for p, expected in zip(mlp, mlp_dense, strict=True):
@@ -158,7 +160,7 @@ def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp
     del state["averaged"]  # as written before weight averaging existed
     torch.save(state, ckpt)
     loaded, _ = load_trainer(ckpt, device="cpu")
-    for averaged, p in zip(loaded.averaged, loaded.field.parameters()):
+    for averaged, p in zip(loaded.weights.averaged, loaded.field.parameters()):
         assert torch.equal(averaged, p.detach())
 
 
@@ -202,10 +204,10 @@ def test_checkpoint_errors_are_one_line(tmp_path):
 
 def test_checkpoint_keeps_the_contributing_fraction_that_steers_the_ray_count(tiny_scene, tmp_path):
     trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
-    trainer._fraction = 0.37  # as after steps where 37 % of the marched samples composite
+    trainer.rays.fraction = 0.37  # as after steps where 37 % of the marched samples composite
     save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
     loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
-    assert loaded._fraction == 0.37
+    assert loaded.rays.fraction == 0.37
 
 
 def test_checkpoint_from_another_version_is_a_one_line_error(tiny_scene, tmp_path):
@@ -235,7 +237,7 @@ def test_checkpoint_from_before_sub_rays_loads_as_one_ray_per_pixel(tiny_scene, 
     del state["train_config"]["supersample"]
     torch.save(state, tmp_path / "c.pt")
     # resolve unset settings as CUDA would (2×2 sub-rays), on the CPU
-    monkeypatch.setattr("ngp_warp.trainer.device_defaults", lambda cfg, _: device_defaults(cfg, "cuda"))
+    monkeypatch.setattr("ngp_warp.config.device_defaults", lambda cfg, _: device_defaults(cfg, "cuda"))
     assert Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu").config.supersample == 2
     loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
     assert loaded.config.supersample == 1
@@ -247,7 +249,7 @@ def test_cuda_graph_field_matches_the_eager_field(tiny_scene, precision):
     cfg = apply_overrides(tiny_config(20), [f"mlp_precision={precision}"])
     trainer = Trainer(load_scene(tiny_scene), cfg, device="cuda")
     trainer.train(show_progress=False)
-    assert trainer._graphed_field is not None  # training went through the captured graphs
+    assert trainer.training_field.graphed_forward is not None  # training went through the captured graphs
     assert trainer.field.forward.__func__ is type(trainer.field).forward  # the field itself stays eager
     n, field = trainer.target_samples, trainer.field
     g = torch.Generator(device="cuda").manual_seed(0)
@@ -262,9 +264,9 @@ def test_cuda_graph_field_matches_the_eager_field(tiny_scene, precision):
         ((sigma * w_sigma).sum() + (rgb * w_rgb).sum()).backward()
         return [sigma.detach().clone(), rgb.detach().clone()] + [p.grad.clone() for p in field.parameters()]
 
-    with trainer._mlp_precision():  # as in training: bf16 matmuls under autocast
+    with trainer.model.precision():  # as in training: bf16 matmuls under autocast
         eager = values_and_grads(field)
-        graphed = values_and_grads(trainer.field_fn)
+        graphed = values_and_grads(trainer.training_field)
     assert eager[-1].abs().max() > 0
     # bf16: cuBLAS may pick another kernel inside the capture, so allow a few bf16 roundings
     tol = dict(rtol=1e-4, atol=1e-6) if precision == "fp32" else dict(rtol=3e-2, atol=1e-3)

@@ -1,0 +1,170 @@
+"""Training settings: :class:`TrainConfig`, its ``key=value`` overrides and the defaults resolved
+per device and per scene (the command line itself is parsed by :mod:`ngp_warp.cli`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+from ngp_warp._checks import check_numbers
+from ngp_warp.data import Scene
+from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig
+
+
+@dataclass
+class TrainConfig:
+    """Training settings; ``None`` sizes pick a default for the device."""
+
+    steps: int | None = None            # stop after this many steps ...
+    seconds: float | None = None        # ... or after this much training wall-clock
+    target_samples: int | None = None   # samples per batch to hold (2^18 CUDA, 2^15 CPU); with
+                                        # prune, samples that composite (the rows trained on)
+    initial_rays: int = 1024
+    max_rays: int = 1 << 18
+    lr: float = 1e-2
+    weight_decay: float = 1e-6          # on MLP weights only
+    loss: str = "l2"                    # "l2" or "huber"
+    seed: int = 0
+    grid_resolution: int = 128
+    steps_per_diagonal: int = 1024      # marching step = finest cascade's diagonal / this
+    cone_angle: float = 0.0
+    early_stop_eps: float = 1e-4
+    mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
+                                        # field's graphs, "tf32" matmuls, or "fp32"
+    prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
+    cuda_graph: bool = True             # CUDA with prune: replay the field's forward/backward as graphs
+    weight_average: float = 0.995       # > 0: render with an EMA of the weights, this decay per step
+    lazy_table_adam: bool = True        # Adam skips hash-table entries with zero gradient (tiny-cuda-nn),
+                                        # and keeps their weight average in the same pass
+    supersample: int | None = None      # > 1: each training pixel is the mean of supersample² rays on
+                                        # a sub-pixel grid (as the images were area-downsampled), and
+                                        # renders average the same grid; None: 2 on CUDA, 1 on the CPU
+    distortion_weight: float = 0.0      # weight of the mean distortion loss per ray (t in world units)
+    field: FieldConfig = field(default_factory=FieldConfig)
+
+    def check(self) -> None:
+        """Raise ValueError naming the first setting outside its range (None is left to the
+        device), the field's sizes included."""
+        choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4)}
+        for name, allowed in choices.items():
+            value = getattr(self, name)
+            if value not in allowed or type(value) not in (str, int, type(None)):
+                raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {value!r}")
+        check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
+                                     "steps_per_diagonal"),
+                       positive=("seconds", "lr"),
+                       non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"),
+                       optional=("steps", "seconds", "target_samples"))
+        if not 0.0 <= self.weight_average < 1.0:
+            raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
+        self.field.check()
+
+    def budget(self) -> tuple[int | None, float | None]:
+        """(steps, seconds) to train for: 20000 steps when neither is set."""
+        if self.steps is None and self.seconds is None:
+            return 20000, None
+        return self.steps, self.seconds
+
+
+def apply_overrides(config: TrainConfig, settings: list[str]) -> TrainConfig:
+    """A copy of ``config`` with ``key=value`` settings applied (``field.key`` for the field's
+    sizes); values take the setting's declared type (``none`` for settings that default to
+    None, e.g. ``field.finest_resolution``). Raises ValueError on unknown keys or values that do
+    not parse."""
+    config = dataclasses.replace(config, field=dataclasses.replace(config.field))
+    for item in settings:
+        key, sep, text = item.partition("=")
+        target, name = (config.field, key[6:]) if key.startswith("field.") else (config, key)
+        names = {f.name for f in dataclasses.fields(target)} - {"field"}
+        if not sep or name not in names:
+            field_names = {"field." + f.name for f in dataclasses.fields(FieldConfig)}
+            raise ValueError(f"unknown setting {item!r}; expected key=value with key one of "
+                             f"{', '.join(sorted(names | field_names))}")
+        declared = {f.name: f for f in dataclasses.fields(target)}[name]
+        optional = declared.default is None
+        value = None if optional and text.lower() == "none" else _parse_value(declared.type, text, key)
+        setattr(target, name, value)
+    return config
+
+
+def _parse_value(declared: str, text: str, key: str):
+    """``text`` as the dataclass field's declared type (an annotation string such as
+    ``"float | None"``: this module postpones annotations)."""
+    kind = declared.split("|")[0].strip()
+    if kind == "bool":
+        if text.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(f"{key} takes true or false, got {text!r}")
+        return text.lower() in ("true", "1")
+    if kind == "str":
+        return text
+    try:
+        return int(text) if kind == "int" else float(text)
+    except ValueError:
+        raise ValueError(f"{key} takes {'an integer' if kind == 'int' else 'a number'}, got {text!r}") from None
+
+
+def default_device() -> str:
+    """``cuda`` when torch and Warp both see a GPU, else ``cpu``."""
+    from ngp_warp import _wp
+
+    return "cuda" if _wp.cuda_available() else "cpu"
+
+
+def device_defaults(config: TrainConfig, device_type: str) -> TrainConfig:
+    """``config`` with ``supersample`` filled in when left to None: 2×2 sub-rays per training
+    pixel on CUDA, one ray on the CPU.
+
+    On lego (H200, schedule over 300 s, 200 views, RESULTS.md) the sub-rays took the 300 s PSNR
+    from 34.75 to 36.61 dB. With them, session 8's 2^21-entry table and distortion loss no longer
+    helped (36.67–36.74 dB at 300 s with or without them, 25 views; NOTES entry 21), so the table
+    is instant-ngp's 2^19 and the distortion loss is off by default on both devices. On the CPU,
+    2×2 sub-rays gave 33.18 against 33.56 dB on the demo in 150 s on 2 cores.
+    """
+    if config.supersample is not None:
+        return config
+    return dataclasses.replace(config, supersample=2 if device_type == "cuda" else 1)
+
+
+def default_target_samples(config: TrainConfig, device_type: str) -> int:
+    """The samples per batch to hold: the config's, else 2^18 on CUDA and 2^15 on the CPU. Left
+    out of the resolved config, so a resumed run takes its new device's default."""
+    return config.target_samples or (1 << 18 if device_type == "cuda" else 1 << 15)
+
+
+def pixel_matched_resolution(scene: Scene, subpixels: int = 1) -> float:
+    """The finest hash-grid resolution whose cells are about one training pixel wide at the
+    field box's centre: the box's longest side over the median pixel footprint (camera distance
+    to the centre over the focal length fx), rounded, clamped to [64, 2048 per unit cube]
+    (instant-ngp's 2048 × aabb_scale). Training on ``subpixels``² rays per pixel makes the cells
+    √subpixels times finer.
+
+    On lego at 400×400 this gives 413 cells. Measured there after 60 s (RESULTS.md): finest
+    256 / 362 / 512 / 724 / 1024 / 2048 give 34.97 / 35.31 / 35.25 / 35.03 / 34.74 / 34.43 dB:
+    levels finer than the pixels let the field fit each training ray on its own, which the test
+    views do not share. With 2×2 sub-rays per pixel (H200, 300 s, 25 views) finest 413 / 584 /
+    826 gave 36.67 / 36.84 / 36.70 dB, and with 3×3, 716 against 1239 cells gave 36.95 against
+    36.76 dB: the sub-rays resolve detail finer than a pixel, but not a full sub-pixel's worth.
+    """
+    split = scene.train
+    box = scene.aabb.double()
+    centre = 0.5 * (box[:3] + box[3:])
+    distance = (split.c2w[:, :, 3].double() - centre).norm(dim=-1)
+    footprint = float((distance / split.intrinsics[:, 0].double()).median()) / math.sqrt(subpixels)
+    side = float((box[3:] - box[:3]).max())
+    unit = float((scene.occupancy_aabb[3:] - scene.occupancy_aabb[:3]).max())
+    ceiling = INSTANT_NGP_FINEST_RESOLUTION * side / unit
+    return float(min(max(round(side / max(footprint, 1e-12)), 64), ceiling))
+
+
+def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> TrainConfig:
+    """``config``, checked, or a copy with the settings left to None filled in for the device
+    (:func:`device_defaults`) and the scene (the finest resolution, by
+    :func:`pixel_matched_resolution`), so that checkpoints store the numbers used. Raises
+    ValueError naming a setting out of range."""
+    config.check()
+    config = device_defaults(config, device_type)
+    if config.field.finest_resolution is None:
+        finest = pixel_matched_resolution(scene, config.supersample)
+        config = dataclasses.replace(config, field=dataclasses.replace(config.field, finest_resolution=finest))
+    return config

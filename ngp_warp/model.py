@@ -1,0 +1,101 @@
+"""A scene's radiance model: the field, its occupancy grid, and how rays march through them.
+
+Training (:mod:`ngp_warp.trainer`) and inference (:mod:`ngp_warp.renderer`) render through the
+one :meth:`RadianceModel.render`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Callable
+
+import torch
+
+from ngp_warp.data import Scene
+from ngp_warp.field import FieldConfig, NGPField
+from ngp_warp.occupancy import OccupancyGrid
+from ngp_warp.raymarch import MarchOptions
+from ngp_warp.render import FieldFn, render_rays
+
+FAR = 1e4  # far distance of every ray (world units); the grid ends rays long before it
+
+
+class RadianceModel:
+    """The field and occupancy grid of one scene, with the settings a ray is marched by.
+
+    Args:
+        field: the radiance field. grid: its occupancy grid (same device).
+        march: near, far, step and cone angle (``stratified`` is chosen per render).
+        early_stop_eps: as in :func:`ngp_warp.render_rays`.
+        mlp_precision: the MLPs' matmul precision on CUDA, ``"bf16"``, ``"tf32"`` or ``"fp32"``
+            (the CPU runs fp32).
+    """
+
+    def __init__(self, field: NGPField, grid: OccupancyGrid, march: MarchOptions, *,
+                 early_stop_eps: float = 1e-4, mlp_precision: str = "fp32"):
+        self.field = field
+        self.grid = grid
+        self.march = dataclasses.replace(march, stratified=False)
+        self._stratified = dataclasses.replace(march, stratified=True)  # made once: no per-step objects
+        self.early_stop_eps = early_stop_eps
+        self.mlp_precision = mlp_precision
+
+    @classmethod
+    def for_scene(cls, scene: Scene, field_config: FieldConfig, device: torch.device, *, grid_resolution: int,
+                  steps_per_diagonal: int, cone_angle: float, **settings) -> RadianceModel:
+        """A fresh field over ``scene.aabb`` and a grid over its occupancy box, on ``device``,
+        marched from the scene's near distance to :data:`FAR`. The step is the finest cascade's
+        diagonal over ``steps_per_diagonal`` (instant-ngp's √3/1024 of its unit cube), not the
+        whole field box's, which is aabb_scale times larger for instant-ngp scenes.
+        ``settings``: the constructor's keywords."""
+        field = NGPField(scene.aabb.to(device), field_config).to(device)
+        grid = OccupancyGrid(scene.occupancy_aabb, resolution=grid_resolution,
+                             levels=scene.occupancy_levels).to(device)
+        box = scene.occupancy_aabb
+        step_size = float((box[3:] - box[:3]).norm()) / steps_per_diagonal
+        march = MarchOptions(near=scene.near, far=FAR, step_size=step_size, cone_angle=cone_angle)
+        return cls(field, grid, march, **settings)
+
+    @property
+    def device(self) -> torch.device:
+        return self.field.aabb.device
+
+    @property
+    def step_size(self) -> float:
+        """The marching step (world units)."""
+        return self.march.step_size
+
+    @contextlib.contextmanager
+    def precision(self):
+        """The MLPs' matmul precision on CUDA (master weights stay float32). bf16 autocast runs
+        without its cast cache, which CUDA-graph capture requires: the weights' casts are then
+        part of the captured graphs (a few kernels over 13 k weights)."""
+        mode = self.mlp_precision
+        if self.device.type != "cuda" or mode == "fp32":
+            yield
+        elif mode == "bf16":
+            with torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False):
+                yield
+        else:  # tf32 (TrainConfig.check names the modes)
+            saved = torch.backends.cuda.matmul.allow_tf32
+            torch.backends.cuda.matmul.allow_tf32 = True
+            try:
+                yield
+            finally:
+                torch.backends.cuda.matmul.allow_tf32 = saved
+
+    def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, field_fn: FieldFn, *, background=None,
+               stratified: bool = False, sigma_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
+               sample_capacity: int | None = None, return_samples: bool = False,
+               before_sync: Callable[[], None] | None = None) -> dict:
+        """Rays ``rays_o``, ``rays_d`` ([N, 3] float32, unit directions) through the grid,
+        evaluated by ``field_fn`` (the field, or a graphed stand-in for it): the dict of
+        :func:`ngp_warp.render_rays`, whose other keywords these are, with this model's march
+        (``stratified``: jittered first samples) and early-stop threshold."""
+        return render_rays(
+            rays_o, rays_d, self.grid, field_fn, self._stratified if stratified else self.march,
+            early_stop_eps=self.early_stop_eps, background=background,
+            sigma_fn=sigma_fn, sample_capacity=sample_capacity,
+            return_samples=return_samples, before_sync=before_sync,
+        )
