@@ -164,6 +164,10 @@ class Trainer:
         stderr (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps)."""
         steps, seconds = self.config.budget()
         start_step, start_seconds = self.step_count, self.train_seconds
+
+        def done() -> float:  # the bar counts steps, or seconds with a time budget only
+            return self.step_count - start_step if steps else round(self.train_seconds - start_seconds, 1)
+
         with tqdm(desc="train", total=steps or seconds, unit="step" if steps else "s", disable=not show_progress,
                   dynamic_ncols=True) as bar:
             while True:
@@ -175,8 +179,9 @@ class Trainer:
                                self.train_seconds / (start_seconds + seconds) if seconds else 0.0)
                 stats = self.step(progress)
                 if show_progress and (self.step_count % READOUT_EVERY == 0 or self.step_count == 1):
-                    done = done_steps + 1 if steps else round(self.train_seconds - start_seconds, 1)
-                    _readout(bar, done, stats)
+                    _readout(bar, stats)
+                    bar.update(done() - bar.n)
+            bar.update(done() - bar.n)
         self.flush()
 
     # -- inference -------------------------------------------------------------------------
@@ -213,9 +218,8 @@ class Trainer:
         self.train_seconds = state["train_seconds"]
 
 
-def _readout(bar: tqdm, done: float, stats: dict) -> None:
-    """Show a step's loss, PSNR (from its mse), rays and samples, and ``done`` steps or seconds."""
+def _readout(bar: tqdm, stats: dict) -> None:
+    """Show a step's loss, PSNR (from its mse), rays and samples (reading them syncs)."""
     psnr = -10.0 * math.log10(max(float(stats["mse"]), 1e-10))
     bar.set_postfix(loss=f"{float(stats['loss']):.4f}", psnr=f"{psnr:.2f}", rays=stats["rays"],
                     samples=stats["samples"], refresh=False)
-    bar.update(done - bar.n)

@@ -1,18 +1,20 @@
-"""End-to-end training on a tiny generated scene (CPU), checkpoints and resume."""
+"""End-to-end training on a tiny generated scene (CPU), settings, and the step's parts
+(checkpoints: test_checkpoint.py)."""
 
 import dataclasses
 import math
+from collections import Counter
 
 import pytest
 import torch
 
-from ngp_warp.checkpoint import CheckpointError, load_trainer, read_checkpoint, save_checkpoint
+from ngp_warp.config import TrainConfig, apply_overrides, device_defaults, pixel_matched_resolution
 from ngp_warp.data import load_scene
 from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.field import FieldConfig
 from ngp_warp.metrics import psnr
 from ngp_warp.scene import CAMERA_ANGLE_X, CAMERA_RADIUS, write_demo_scene
-from ngp_warp.config import TrainConfig, apply_overrides, device_defaults, pixel_matched_resolution
+from ngp_warp.train_step import StepPhases
 from ngp_warp.trainer import Trainer
 
 
@@ -85,31 +87,33 @@ def test_deferred_optimizer_updates_equal_updates_at_the_end_of_each_step(tiny_s
     assert not torch.equal(start, deferred[0])  # the updates were applied
 
 
-@pytest.mark.parametrize("lazy_table_adam", [False, True])
-def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam):
-    cfg = tiny_config(40)
-    cfg.lazy_table_adam = lazy_table_adam
-    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
-    trainer.train(show_progress=False)
-    ckpt = tmp_path / "checkpoint.pt"
-    save_checkpoint(trainer, ckpt, tiny_scene, downscale=1)
-    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]  # no temporary left behind
+def test_instrumented_phases_see_every_call_and_change_nothing(tiny_scene):
+    calls = Counter()
 
-    loaded, record = load_trainer(ckpt, device="cpu")
-    assert record["path"] == str(tiny_scene.resolve())
-    split = trainer.scene.test
-    a = trainer.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height)
-    b = loaded.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height)
-    torch.testing.assert_close(a["rgb"], b["rgb"], rtol=0, atol=0)
-    torch.testing.assert_close(a["depth"], b["depth"], rtol=0, atol=0)
-    for mine, theirs in zip(trainer.weights.optimizers(), loaded.weights.optimizers(), strict=True):
-        for key, state in mine.state_dict()["state"].items():
-            saved = theirs.state_dict()["state"][key]
-            assert all(torch.equal(v, saved[k]) if torch.is_tensor(v) else v == saved[k] for k, v in state.items())
+    def counting(phase, fn):
+        def call(*args, **kwargs):
+            calls[phase] += 1
+            return fn(*args, **kwargs)
+        return call
 
-    loaded.config.steps = 5
-    loaded.train(show_progress=False)
-    assert loaded.step_count == 45
+    def train(instrument: bool) -> Trainer:  # each from the seed: the march's jitter draws from torch's RNG
+        trainer = Trainer(load_scene(tiny_scene), apply_overrides(tiny_config(20), ["distortion_weight=0.1"]),
+                          device="cpu")  # every phase runs
+        if instrument:
+            trainer.instrument(counting)
+        trainer.train(show_progress=False)
+        return trainer
+
+    plain, counted = train(False), train(True)
+    for a, b in zip(plain.field.parameters(), counted.field.parameters(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert set(calls) == {f.name for f in dataclasses.fields(StepPhases)}
+    once_a_step = ("grid_update", "sample_batch", "render", "field", "loss", "distortion", "backward")
+    assert all(calls[phase] == 20 for phase in once_a_step), calls
+    # the density pass before each pruning, plus the grid refresh's chunks (steps 0 and 16)
+    assert calls["density"] > 20
+    # once in each march, in the refreshes, and train()'s final flush
+    assert calls["optimizer_update"] >= 21
 
 
 def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scene):
@@ -150,20 +154,6 @@ def test_table_average_kept_lazily_equals_a_dense_average_of_the_table(tiny_scen
         torch.testing.assert_close(averaged[id(p)].double(), expected, rtol=0, atol=1e-6)
 
 
-def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp_path):
-    trainer = Trainer(load_scene(tiny_scene), tiny_config(10), device="cpu")
-    trainer.train(show_progress=False)
-    ckpt = tmp_path / "checkpoint.pt"
-    save_checkpoint(trainer, ckpt, tiny_scene, downscale=1)
-    state = torch.load(ckpt, weights_only=False)
-    assert state["averaged"] is not None
-    del state["averaged"]  # as written before weight averaging existed
-    torch.save(state, ckpt)
-    loaded, _ = load_trainer(ckpt, device="cpu")
-    for averaged, p in zip(loaded.weights.averaged, loaded.field.parameters()):
-        assert torch.equal(averaged, p.detach())
-
-
 def test_render_image_averages_jittered_renders(tiny_scene):
     trainer = Trainer(load_scene(tiny_scene), tiny_config(60), device="cpu")
     trainer.train(show_progress=False)
@@ -188,59 +178,6 @@ def test_settings_override_a_copy_of_the_config(tiny_scene):
             apply_overrides(base, [bad])
     with pytest.raises(ValueError, match="mlp_precision"):
         Trainer(load_scene(tiny_scene), apply_overrides(base, ["mlp_precision=fp8"]), device="cpu")
-
-
-def test_checkpoint_errors_are_one_line(tmp_path):
-    with pytest.raises(CheckpointError, match="no checkpoint there"):
-        read_checkpoint(tmp_path / "missing.pt")
-    bad = tmp_path / "bad.pt"
-    bad.write_bytes(b"not a checkpoint")
-    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
-        read_checkpoint(bad)
-    torch.save({"something": 1}, tmp_path / "other.pt")
-    with pytest.raises(CheckpointError, match="not an ngp-warp checkpoint"):
-        read_checkpoint(tmp_path / "other.pt")
-
-
-def test_checkpoint_keeps_the_contributing_fraction_that_steers_the_ray_count(tiny_scene, tmp_path):
-    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
-    trainer.rays.fraction = 0.37  # as after steps where 37 % of the marched samples composite
-    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
-    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
-    assert loaded.rays.fraction == 0.37
-
-
-def test_checkpoint_from_another_version_is_a_one_line_error(tiny_scene, tmp_path):
-    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
-    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
-    state = torch.load(tmp_path / "c.pt", weights_only=False)
-    state["train_config"]["a_future_setting"] = 1
-    torch.save(state, tmp_path / "c.pt")
-    with pytest.raises(CheckpointError, match="another ngp-warp version.*a_future_setting"):
-        load_trainer(tmp_path / "c.pt", device="cpu")
-
-
-def test_checkpoint_with_a_setting_out_of_range_is_a_one_line_error(tiny_scene, tmp_path):
-    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
-    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
-    state = torch.load(tmp_path / "c.pt", weights_only=False)
-    state["train_config"]["lr"] = -1.0
-    torch.save(state, tmp_path / "c.pt")
-    with pytest.raises(CheckpointError, match="lr must be a number > 0"):
-        load_trainer(tmp_path / "c.pt", device="cpu")
-
-
-def test_checkpoint_from_before_sub_rays_loads_as_one_ray_per_pixel(tiny_scene, tmp_path, monkeypatch):
-    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
-    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
-    state = torch.load(tmp_path / "c.pt", weights_only=False)
-    del state["train_config"]["supersample"]
-    torch.save(state, tmp_path / "c.pt")
-    # resolve unset settings as CUDA would (2×2 sub-rays), on the CPU
-    monkeypatch.setattr("ngp_warp.config.device_defaults", lambda cfg, _: device_defaults(cfg, "cuda"))
-    assert Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu").config.supersample == 2
-    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
-    assert loaded.config.supersample == 1
 
 
 @pytest.mark.cuda
@@ -286,34 +223,12 @@ def test_finest_resolution_follows_the_training_pixels(tiny_scene):
     assert pixel_matched_resolution(scene) == 2048.0
 
 
-def test_trainer_resolves_an_unset_finest_resolution_and_checkpoints_it(tiny_scene, tmp_path):
-    cfg = tiny_config(2)
-    cfg.field.finest_resolution = None
-    scene = load_scene(tiny_scene)
-    trainer = Trainer(scene, cfg, device="cpu")
-    assert cfg.field.finest_resolution is None  # the caller's config is left alone
-    assert trainer.config.field.finest_resolution == pixel_matched_resolution(scene)
-    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
-    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
-    assert loaded.config.field.finest_resolution == trainer.config.field.finest_resolution
-
-
 @pytest.mark.parametrize("device,sub", [("cuda", 2), ("cpu", 1)])
 def test_unset_supersample_follows_the_device(device, sub):
     assert TrainConfig().supersample is None and device_defaults(TrainConfig(), device).supersample == sub
     assert device_defaults(TrainConfig(supersample=3), device).supersample == 3
     cfg = TrainConfig()
     assert (cfg.field.log2_hashmap_size, cfg.distortion_weight) == (19, 0.0)  # instant-ngp's on both devices
-
-
-def test_trainer_checkpoints_the_resolved_device_defaults(tiny_scene, tmp_path):
-    cfg = tiny_config(1)
-    cfg.supersample = None
-    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
-    assert trainer.config.supersample == 1
-    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
-    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
-    assert loaded.config.supersample == 1
 
 
 @pytest.mark.parametrize("setting", ["steps=0", "seconds=-1", "target_samples=0", "grid_resolution=0", "lr=-1e-3",
