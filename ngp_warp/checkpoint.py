@@ -1,21 +1,24 @@
 """Checkpoints: everything needed to resume training, evaluate or render, saved atomically.
 
-A checkpoint is a dict saved by ``torch.save``: ``format``, ``scene`` (the scene folder and
-downscale), ``train_config`` (the resolved :class:`~ngp_warp.config.TrainConfig` as a dict),
+A checkpoint is a dict saved by ``torch.save``: ``format``, ``scene`` (the scene folder,
+downscale and :func:`scene_fingerprint`), ``train_config`` (the resolved :class:`~ngp_warp.config.TrainConfig` as a dict),
 the keys of :meth:`Trainer.state_dict <ngp_warp.trainer.Trainer.state_dict>` and ``rng`` (torch's
 CPU generator state).
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import asdict
 from pathlib import Path
+
+import numpy as np
 
 import torch
 
 from ngp_warp.atomic import atomic_file
 from ngp_warp.config import TrainConfig
-from ngp_warp.data import DataError, load_scene
+from ngp_warp.data import DataError, Scene, load_scene
 from ngp_warp.field import FieldConfig
 from ngp_warp.trainer import Trainer
 
@@ -26,15 +29,40 @@ class CheckpointError(ValueError):
     """A checkpoint that is missing, unreadable or not ours; the message is one line."""
 
 
+class NonFiniteWeights(CheckpointError):
+    """The weights to save hold NaN or infinity (training diverged); nothing was written."""
+
+
+def scene_fingerprint(scene: Scene) -> dict:
+    """What identifies a scene's training split wherever its folder lies: ``views``, ``width``,
+    ``height`` and ``digest`` (SHA-1 of the image file names and the camera poses)."""
+    split = scene.train
+    digest = hashlib.sha1()
+    for name in split.names:
+        digest.update(Path(name).name.encode() + b"\0")
+    digest.update(np.round(split.c2w.double().cpu().numpy(), 5).tobytes())
+    return {"views": len(split.names), "width": split.width, "height": split.height, "digest": digest.hexdigest()}
+
+
+def _check_finite(state: dict, path: Path) -> None:
+    floats = [t for t in state["field"].values() if t.is_floating_point()]
+    if not bool(torch.stack([torch.isfinite(t).all() for t in floats]).all()):  # one sync
+        raise NonFiniteWeights(f"the weights at step {state['step']} are not finite (training diverged); "
+                               f"not saved, {path} keeps the last good checkpoint, if any")
+
+
 def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: int) -> None:
-    """Write ``path`` atomically (temporary file, then rename)."""
+    """Write ``path`` atomically (temporary file, then rename); :class:`NonFiniteWeights`,
+    writing nothing, when the field's weights hold NaN or infinity."""
     state = {
         "format": FORMAT,
-        "scene": {"path": str(Path(scene_path).resolve()), "downscale": int(downscale)},
+        "scene": {"path": str(Path(scene_path).resolve()), "downscale": int(downscale),
+                  **scene_fingerprint(trainer.scene)},
         "train_config": asdict(trainer.config),
         **trainer.state_dict(),
         "rng": torch.get_rng_state(),
     }
+    _check_finite(state, Path(path))
     with atomic_file(path) as tmp:
         torch.save(state, tmp)
 
@@ -68,9 +96,32 @@ def _train_config(path: Path, saved: dict) -> TrainConfig:
     return config
 
 
+def _check_same_scene(path: Path, record: dict, scene: Scene) -> None:
+    """CheckpointError when ``scene`` is not the one the checkpoint trained on (checkpoints
+    from before fingerprints are not checked)."""
+    if "digest" not in record:
+        return
+    mine = scene_fingerprint(scene)
+    if mine != {key: record[key] for key in mine}:
+        raise CheckpointError(
+            f"{record['path']} is not the scene {path} was trained on ({mine['views']} training views "
+            f"{mine['width']}x{mine['height']} there, {record['views']} views {record['width']}x{record['height']} "
+            f"in the checkpoint, or other cameras)")
+
+
+def _restore(trainer: Trainer, state: dict, path: Path) -> None:
+    try:
+        trainer.load_state_dict(state)
+        torch.set_rng_state(state["rng"])
+    except (RuntimeError, TypeError, ValueError, AttributeError, IndexError) as e:
+        reason = " ".join(str(e).split())[:160]
+        raise CheckpointError(f"{path}: its saved tensors do not fit its settings ({reason})") from None
+
+
 def load_trainer(path: Path, device: str | None = None, scene_path: Path | None = None) -> tuple[Trainer, dict]:
     """Rebuild the trainer saved in ``path`` (its scene is re-read from the recorded folder,
-    or ``scene_path``). Returns the trainer and the checkpoint's scene record."""
+    or ``scene_path``, which must hold the same views and cameras). Returns the trainer and the
+    checkpoint's scene record; CheckpointError for a checkpoint that does not fit."""
     state = read_checkpoint(path)
     try:
         record = dict(state["scene"])
@@ -80,9 +131,9 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
             scene = load_scene(record["path"], downscale=record["downscale"])
         except DataError as e:
             raise CheckpointError(f"{path}: cannot reload its scene: {e}") from None
+        _check_same_scene(path, record, scene)
         trainer = Trainer(scene, _train_config(path, state["train_config"]), device=device)
-        trainer.load_state_dict(state)
-        torch.set_rng_state(state["rng"])
+        _restore(trainer, state, path)
     except KeyError as e:  # a part this version saves and the file lacks
         raise CheckpointError(f"{path}: written by another ngp-warp version (no {e.args[0]!r} in it)") from None
     return trainer, record

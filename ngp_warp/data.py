@@ -28,8 +28,8 @@ from ngp_warp.atomic import atomic_write_text
 from ngp_warp.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, generate_rays
 from ngp_warp.colmap import colmap_to_transforms, read_colmap_model
 from ngp_warp.data_error import DataError, short
-from ngp_warp.transforms_json import (NGP_SCENE_KEYS, Frame, contraction_key, frame_camera, read_frames,
-                                      read_json, world_box, world_from_scene)
+from ngp_warp.transforms_json import (NGP_SCENE_KEYS, Frame, contraction_key, declared_size, frame_camera, log,
+                                      read_frames, read_json, world_box, world_from_scene)
 
 __all__ = ["DataError", "Split", "Scene", "load_scene", "generate_rays", "image_rays", "downscale_image",
            "normalisation_record", "write_normalisation"]
@@ -244,8 +244,18 @@ def _load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[
 
 
 
+def _warn_rescaled(frames: list[Frame], sizes: list[tuple[int, int]]) -> None:
+    """One warning when frames declare a w x h other than their image's (same aspect ratio)."""
+    odd = [(f, size) for f, size in zip(frames, sizes) if declared_size(f) not in (None, size)]
+    if odd:
+        (frame, (w, h)), declared = odd[0], declared_size(odd[0][0])
+        log.warning(f"ngp-warp: {frame.where}: w x h = {declared[0]:g}x{declared[1]:g} but the image is {w}x{h}; "
+                    f"focal length and centre scaled to the image ({len(odd)} of {len(frames)} frames)")
+
+
 def _split(frames: list[Frame], images: np.ndarray, sizes: list[tuple[int, int]], downscale: int) -> Split:
     intr, dist, fisheye = zip(*(frame_camera(f, w, h) for f, (w, h) in zip(frames, sizes)))
+    _warn_rescaled(frames, sizes)
     if len(set(fisheye)) > 1:
         odd = frames[fisheye.index(not fisheye[0])]
         raise DataError(f"{odd.where}: mixes fisheye and perspective cameras in one split (one lens model per scene)")
@@ -276,7 +286,10 @@ def _sources(path: Path, downscale: int) -> tuple[list[tuple[dict, Path, Path]],
     if not path.is_dir():
         raise DataError(f"{path}: no such file or folder")
     if (path / "transforms_train.json").is_file():
-        jsons = [path / "transforms_train.json"] + [p for p in [path / "transforms_test.json"] if p.is_file()]
+        test = path / "transforms_test.json"
+        if test.exists() and not test.is_file():
+            raise DataError(f"{test}: is not a file (a test split must be a transforms file)")
+        jsons = [path / "transforms_train.json"] + [test] * test.exists()
         return [(read_json(p), p, path) for p in jsons], "json", downscale
     if (path / "transforms.json").is_file():
         return [(read_json(path / "transforms.json"), path / "transforms.json", path)], "json", downscale

@@ -86,6 +86,17 @@ def _matrix(value, where: str, key: str = "transform_matrix") -> np.ndarray:
     return m
 
 
+def _check_rigid(c2w: np.ndarray, where: str) -> None:
+    """DataError unless the rotation part of a camera pose is a rotation (orthonormal columns,
+    within 1 %): a scaled or sheared one would change the rays' lengths and angles."""
+    rotation = c2w[:, :3]
+    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if error > 0.02:
+        norms = ", ".join(f"{n:.4g}" for n in np.linalg.norm(rotation, axis=0))
+        raise DataError(f"{where}: transform_matrix is not a rigid camera pose (its rotation columns have "
+                        f"lengths {norms} and must be orthonormal)")
+
+
 def _image_path(base: Path, file_path, where: str) -> Path:
     """The image file of ``file_path`` (extension optional), or the path tried when there is none."""
     if not isinstance(file_path, str) or not file_path:
@@ -120,6 +131,7 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
             if key not in frame:
                 raise DataError(f"{where}: missing {key}")
         c2w = _matrix(frame["transform_matrix"], where)[:3]
+        _check_rigid(c2w, where)
         image = _image_path(base, frame["file_path"], where)
         if image.is_file():
             out.append(Frame(where, image, c2w, [top, _camera_keys(frame)]))
@@ -173,12 +185,46 @@ def _lens(merged: dict, where: str) -> tuple[bool, list[float]]:
     return fisheye, [k[key] for key in DISTORTION_KEYS]
 
 
+def declared_size(frame: Frame) -> tuple[float, float] | None:
+    """The frame's ``w`` and ``h`` keys (the image size its pixel keys refer to), if both are given."""
+    merged = {**frame.camera[0], **frame.camera[1]}
+    if "w" not in merged or "h" not in merged:
+        return None
+    return number(merged, "w", frame.where, positive=True), number(merged, "h", frame.where, positive=True)
+
+
+def _check_distortion(dist: list[float], intrinsics: list[float], width: int, height: int, where: str) -> None:
+    """DataError for radial coefficients that are no lens over this image: the radial map
+    r → r (1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸) (r normalised, θ for fisheye) must increase up to
+    the image corner's distorted radius r_c, and reach it between r_c / 5 and 5 r_c."""
+    k1, k2, k3, k4 = dist[:4]
+    if not (k1 or k2 or k3 or k4):
+        return
+    fx, fy, cx, cy = intrinsics
+    corner = max(math.hypot((x - cx) / fx, (y - cy) / fy) for x in (0, width) for y in (0, height))
+    r = np.linspace(0.0, 5.0 * corner, 4001)[1:]
+    r2 = r * r
+    mapped = r * (1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4))))
+    reached = np.nonzero(mapped >= corner)[0]
+    end = reached[0] if reached.size else len(r)
+    increasing = bool(np.all(np.diff(mapped[: end + 1]) > 0))
+    if not reached.size or not increasing or r[end] < corner / 5:
+        coefficients = ", ".join(f"{n} {v:g}" for n, v in zip(("k1", "k2", "k3", "k4"), dist) if v)
+        raise DataError(f"{where}: distortion {coefficients} is not a lens over this {width}x{height} image "
+                        f"(its radial map must increase and keep the corner within 5x of its distorted radius)")
+
+
 def frame_camera(frame: Frame, width: int, height: int) -> tuple[list[float], list[float], bool]:
-    """([fx, fy, cx, cy], [k1, k2, k3, k4, p1, p2], fisheye) of a frame whose image is width x height."""
+    """([fx, fy, cx, cy], [k1, k2, k3, k4, p1, p2], fisheye) of a frame whose image is width x height.
+    DataError when ``w`` / ``h`` give another aspect ratio than the image's (a different size with
+    the same aspect scales the pixel keys to the image)."""
     merged = {**frame.camera[0], **frame.camera[1]}
     fisheye, dist = _lens(merged, frame.where)
     ref_w = number(merged, "w", frame.where, positive=True) if "w" in merged else width
     ref_h = number(merged, "h", frame.where, positive=True) if "h" in merged else height
+    if abs((ref_w / ref_h) / (width / height) - 1) > 0.02:
+        raise DataError(f"{frame.where}: w x h = {ref_w:g}x{ref_h:g} but the image is {width}x{height} "
+                        f"(another aspect ratio)")
     focal = _focal(frame.camera[1], width, height, ref_w, ref_h, frame.where)
     if focal is None:
         focal = _focal(frame.camera[0], width, height, ref_w, ref_h, frame.where)
@@ -186,6 +232,7 @@ def frame_camera(frame: Frame, width: int, height: int) -> tuple[list[float], li
         raise DataError(f"{frame.where}: no focal length (needs camera_angle_x, fl_x, x_fov or a y variant)")
     cx = number(merged, "cx", frame.where) * width / ref_w if "cx" in merged else width / 2
     cy = number(merged, "cy", frame.where) * height / ref_h if "cy" in merged else height / 2
+    _check_distortion(dist, [focal[0], focal[1], cx, cy], width, height, frame.where)
     return [focal[0], focal[1], cx, cy], dist, fisheye
 
 
