@@ -10,6 +10,7 @@ a step is deferred: :meth:`FieldOptimizer.defer` records its learning rate and a
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 
 import torch
 
@@ -52,6 +53,7 @@ class FieldOptimizer:
         self._params = list(field.parameters())
         self.averaged = [p.detach().clone() for p in self._params] if weight_average > 0 else None
         self._pending: tuple[float, float | None] | None = None  # (lr, average decay) of the deferred update
+        self.before_update: Callable[[], None] | None = None  # data-parallel: wait for the reduced gradients
         # The lazy table optimizer keeps the table's average; the rest are lerped after each update.
         self._lerped: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
         for p, average in zip(self._params, self.averaged or []):
@@ -100,6 +102,8 @@ class FieldOptimizer:
             return
         lr, decay = self._pending
         self._pending = None
+        if self.before_update is not None:
+            self.before_update()
         for opt in self.optimizers():
             for group in opt.param_groups:
                 group["lr"] = lr

@@ -118,6 +118,9 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("mips", torch.ones(levels * self.mip_cells, dtype=torch.uint8, device=device),
                              persistent=False)
         self._mips_key = None
+        # data-parallel training: merges an update's per-cell sample maxima ([n_cells] float32,
+        # -1 where none) over the ranks, in place, so that every rank's grid stays the same
+        self.merge_samples: Callable[[torch.Tensor], None] | None = None
         self.register_load_state_dict_post_hook(lambda module, _keys: module._sync_host_aabb())
 
     def _sync_host_aabb(self) -> None:
@@ -205,6 +208,8 @@ class OccupancyGrid(nn.Module):
             values = values.detach().reshape(m).to(torch.float32).contiguous()
             # Scatter-max into arbitrary cells: one CPU thread (align=m), as CPU atomics are not atomic.
             _wp.launch(K.splat_max, m, [cells, values, self._splat], device, align=m)
+        if self.merge_samples is not None:
+            self.merge_samples(self._splat)
         _wp.launch(K.ema_update, n, [self._splat, float(ema_decay), self.occs], device)
         visible = self.occs >= 0
         mean = (self.occs * visible).sum() / visible.sum().clamp(min=1)
