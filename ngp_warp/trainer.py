@@ -60,6 +60,10 @@ class Trainer:
         self.training_field = TrainingField(self.field, self.target_samples, graphs)
         self.step_count = 0
         self.train_seconds = 0.0
+        # data-parallel training (ngp_warp.distributed.make_data_parallel) sets these hooks:
+        self.ray_stream = 0  # this rank's ray seed stream
+        self.gradient_reduction: Callable[[], None] | None = None  # after every backward, on every rank
+        self.shared_clock: Callable[[int], float] | None = None  # step → training seconds all ranks agree on
         self.phases = StepPhases(
             sample_batch=self.sample_batch, grid_update=self.grid.update, render=self._render_batch,
             density=self.training_field.density, field=self.training_field,
@@ -87,8 +91,9 @@ class Trainer:
         """Rays through random pixels across all training images → (rays_o, rays_d [p k, 3],
         target rgb and background [p, 3] per pixel) for p = max(1, n div k) pixels of k =
         supersample² rays each, drawn in one launch from a seed that mixes the config's seed
-        with the step count."""
-        seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B) & 0x7FFFFFFF
+        with the step count (and :attr:`ray_stream`)."""
+        seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B
+                + self.ray_stream * 0xC2B2AE35) & 0x7FFFFFFF
         sub = self.config.supersample
         b = sample_pixels(self.train_split, max(1, n // (sub * sub)), seed, sub)
         return b.rays_o, b.rays_d, b.target, b.background
@@ -139,6 +144,9 @@ class Trainer:
             self.weights.zero_grad()
             if out["n_samples"] > 0:
                 phases.backward(loss)
+            if self.gradient_reduction is not None:  # every rank takes part, with samples or not
+                self.gradient_reduction()
+            if out["n_samples"] > 0 or self.gradient_reduction is not None:
                 self.weights.defer(self.step_count, progress)
         n_samples = self.rays.samples_in_use(out)
         marched = out["n_marched"] if "n_marched" in out else n_samples  # host ints: no sync
@@ -172,11 +180,12 @@ class Trainer:
                   dynamic_ncols=True) as bar:
             while True:
                 done_steps = self.step_count - start_step
-                spent = self.train_seconds - start_seconds
+                clock = self.train_seconds if self.shared_clock is None else self.shared_clock(done_steps)
+                spent = clock - start_seconds
                 if (steps is not None and done_steps >= steps) or (seconds is not None and spent >= seconds):
                     break
                 progress = max(self.step_count / (start_step + steps) if steps else 0.0,
-                               self.train_seconds / (start_seconds + seconds) if seconds else 0.0)
+                               clock / (start_seconds + seconds) if seconds else 0.0)
                 stats = self.step(progress)
                 if show_progress and (self.step_count % READOUT_EVERY == 0 or self.step_count == 1):
                     _readout(bar, stats)
