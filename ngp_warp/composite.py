@@ -94,6 +94,27 @@ def ray_offsets_from_indices(ray_indices: torch.Tensor, n_rays: int) -> torch.Te
     return offsets
 
 
+_VALUE_PROBLEMS = (
+    "ray_indices must lie in [0, n_rays)",
+    "ray_indices must be sorted (the samples of each ray contiguous, front to back)",
+    "t_starts and t_ends must be finite with t_ends ≥ t_starts",
+    "sigmas must be finite and ≥ 0",
+)
+
+
+def _check_values(sigmas, t_starts, t_ends, ray_indices, n_rays: int) -> None:
+    """ValueError for the first of :data:`_VALUE_PROBLEMS` found in the S ≥ 1 samples (one sync)."""
+    flags = torch.stack([
+        ((ray_indices < 0) | (ray_indices >= n_rays)).any(),
+        (ray_indices[1:] < ray_indices[:-1]).any(),
+        ~(torch.isfinite(t_starts) & torch.isfinite(t_ends) & (t_ends >= t_starts)).all(),
+        ~(torch.isfinite(sigmas) & (sigmas >= 0)).all(),
+    ]).tolist()
+    for bad, problem in zip(flags, _VALUE_PROBLEMS):
+        if bad:
+            raise ValueError(problem)
+
+
 def composite(
     sigmas: torch.Tensor,
     rgbs: torch.Tensor,
@@ -103,6 +124,7 @@ def composite(
     n_rays: int,
     early_stop_eps: float = 0.0,
     return_weights: bool = False,
+    validate: bool = True,
 ):
     """Composite packed samples into per-ray colour, opacity and depth (see the module equations).
 
@@ -110,11 +132,15 @@ def composite(
         sigmas: [S] float32 densities σ ≥ 0. rgbs: [S, 3] float32 colours.
         t_starts, t_ends: [S] float32 sample intervals (no gradient).
         ray_indices: [S] int64 or int32, the ray of each sample, **sorted** (samples of a ray
-            contiguous and front to back), each in ``[0, n_rays)``; not checked on the device.
+            contiguous and front to back), each in ``[0, n_rays)``.
         n_rays: number of rays (rays without samples get zeros).
         early_stop_eps: samples with transmittance :math:`T_i < \\epsilon` contribute nothing.
         return_weights: also return the per-sample weights :math:`w_i` ([S] float32,
             differentiable).
+        validate: check the values (one host sync): ray indices sorted and in range, finite
+            intervals with ``t_ends ≥ t_starts``, σ ≥ 0; ValueError naming the first problem.
+            Pass False where the samples come from :func:`ngp_warp.ray_marching` (or call
+            :func:`composite_packed`).
 
     Returns:
         ``(rgb [n_rays, 3], opacity [n_rays], depth [n_rays])`` float32, plus ``weights [S]`` when
@@ -145,6 +171,8 @@ def composite(
         dev = sigmas.device
         out = (torch.zeros(n_rays, 3, device=dev), torch.zeros(n_rays, device=dev), torch.zeros(n_rays, device=dev))
         return (*out, torch.zeros(0, device=dev)) if return_weights else out
+    if validate:
+        _check_values(sigmas, t_starts, t_ends, ray_indices, n_rays)
     offsets = ray_offsets_from_indices(ray_indices.to(torch.int64).contiguous(), n_rays)
     rgb, opacity, depth, weights = composite_packed(
         sigmas.contiguous(), rgbs.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets, early_stop_eps
