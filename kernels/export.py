@@ -13,7 +13,7 @@ to the cell ijk = floor((p − (c − h·2^l)) / (2 h·2^l / R)) there (as the r
 import warp as wp
 
 from ngp_warp.kernels.occupancy import box_center, box_half, cell_id, is_occupied
-from ngp_warp.kernels.raymarch import grid_cell
+from ngp_warp.kernels.raymarch_funcs import grid_cell
 
 wp.set_module_options({"enable_backward": False})
 

@@ -58,7 +58,7 @@ def sample_pixels(split: Split, n: int, seed: int, sub: int = 1) -> PixelBatch:
                      torch.empty(n, 3, dtype=torch.int32, device=dev))
     _wp.launch(
         K.sample_pixels, rays,
-        [seed & 0x7FFFFFFF, sub, len(split), split.width, split.height, images.shape[-1], int(split.has_distortion),
+        [seed & 0x7FFFFFFF, sub, len(split), split.width, split.height, images.shape[-1], split.lens_model,
          images.view(-1), split.c2w.reshape(-1).contiguous(), split.intrinsics.contiguous(),
          split.distortion.contiguous(), out.pixels, out.rays_o, out.rays_d, out.target, out.background],
         _wp.device_of(images),

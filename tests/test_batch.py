@@ -10,7 +10,7 @@ from ngp_warp.data import Split, generate_rays
 from ngp_warp.evaluate import composite_on
 
 
-def random_split(n_images=5, width=23, height=17, channels=4, distortion=False, seed=0) -> Split:
+def random_split(n_images=5, width=23, height=17, channels=4, distortion=False, seed=0, fisheye=False) -> Split:
     g = torch.Generator().manual_seed(seed)
     images = torch.randint(0, 256, (n_images, height, width, channels), generator=g, dtype=torch.uint8)
     q, _ = torch.linalg.qr(torch.randn(n_images, 3, 3, generator=g))
@@ -18,14 +18,15 @@ def random_split(n_images=5, width=23, height=17, channels=4, distortion=False, 
     f = torch.rand(n_images, generator=g) * 20 + 15
     intrinsics = torch.stack([f, f * 1.1, width / 2 + torch.rand(n_images, generator=g),
                               height / 2 - torch.rand(n_images, generator=g)], dim=1)
-    dist = (torch.rand(n_images, 4, generator=g) - 0.5) * 0.1 if distortion else torch.zeros(n_images, 4)
-    return Split(images, c2w, intrinsics, dist, [f"r_{i}" for i in range(n_images)], width, height)
+    dist = (torch.rand(n_images, 6, generator=g) - 0.5) * 0.1 if distortion else torch.zeros(n_images, 6)
+    dist[:, 4 if fisheye else 3:6 if fisheye else 4] = 0  # OpenCV: k4 = 0; fisheye: p1 = p2 = 0
+    return Split(images, c2w, intrinsics, dist, [f"r_{i}" for i in range(n_images)], width, height, fisheye)
 
 
 @pytest.mark.parametrize("channels", [3, 4])
-@pytest.mark.parametrize("distortion", [False, True])
-def test_matches_the_torch_camera_model_and_blending(channels, distortion):
-    split = random_split(channels=channels, distortion=distortion)
+@pytest.mark.parametrize("distortion,fisheye", [(False, False), (True, False), (False, True), (True, True)])
+def test_matches_the_torch_camera_model_and_blending(channels, distortion, fisheye):
+    split = random_split(channels=channels, distortion=distortion, fisheye=fisheye)
     b = sample_pixels(split, 4000, seed=7)
     k, px, py = b.pixels.long().unbind(-1)
     rays_o, rays_d = split.rays(k, px, py)
