@@ -9,6 +9,7 @@ CPU generator state).
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -51,9 +52,11 @@ def _check_finite(state: dict, path: Path) -> None:
                                f"not saved, {path} keeps the last good checkpoint, if any")
 
 
-def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: int) -> None:
+def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: int,
+                    before_write: Callable[[], None] | None = None) -> None:
     """Write ``path`` atomically (temporary file, then rename); :class:`NonFiniteWeights`,
-    writing nothing, when the field's weights hold NaN or infinity."""
+    writing nothing, when the field's weights hold NaN or infinity. ``before_write`` is called
+    once the weights are known good, before anything is written."""
     state = {
         "format": FORMAT,
         "scene": {"path": str(Path(scene_path).resolve()), "downscale": int(downscale),
@@ -63,6 +66,8 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
         "rng": torch.get_rng_state(),
     }
     _check_finite(state, Path(path))
+    if before_write is not None:
+        before_write()
     with atomic_file(path) as tmp:
         torch.save(state, tmp)
 
