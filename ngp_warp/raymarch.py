@@ -115,22 +115,41 @@ def _check_rays(rays_o: torch.Tensor, rays_d: torch.Tensor, grid: OccupancyGrid)
         raise ValueError(f"rays_o holds {rays_o.shape[0]} rays but rays_d {rays_d.shape[0]}")
 
 
-def _read_total(total: torch.Tensor, before_sync: Callable[[], None] | None) -> int:
-    """``total`` ([1] int32 on the device) on the host. On CUDA with ``before_sync``, through a
-    pinned copy and an event recorded before ``before_sync``'s work, so that the host waits
-    for the count only, while the GPU goes on with that work."""
+def _read_total(total: torch.Tensor, before_sync: Callable[[], None] | None) -> list[int]:
+    """``total`` ([k] int32 on the device: the count, then any check flags) on the host. On CUDA
+    with ``before_sync``, through a pinned copy and an event recorded before ``before_sync``'s
+    work, so that the host waits for the count only, while the GPU goes on with that work."""
     if before_sync is None:
-        return int(total)
+        return total.tolist()
     if not total.is_cuda:
         before_sync()
-        return int(total)
-    host = torch.empty(1, dtype=total.dtype, pin_memory=True)
+        return total.tolist()
+    host = torch.empty(total.shape, dtype=total.dtype, pin_memory=True)
     host.copy_(total, non_blocking=True)
     copied = torch.cuda.Event()
     copied.record(torch.cuda.current_stream(total.device))  # the copy's stream, whichever GPU is current
     before_sync()
     copied.synchronize()
-    return int(host)
+    return host.tolist()
+
+
+_RAY_PROBLEMS = ("rays_o holds NaN or infinite origins", "rays_d holds NaN or infinite directions",
+                 "rays_d holds directions that are not unit vectors (|d| off 1 by more than 1e-3; "
+                 "normalise them: rays_d / rays_d.norm(dim=-1, keepdim=True))")
+
+
+def _ray_flags(rays_o: torch.Tensor, rays_d: torch.Tensor, unit_directions: bool) -> torch.Tensor:
+    """[1] int32 on the device, bit k set for problem k of :data:`_RAY_PROBLEMS` (no sync)."""
+    flags = (~torch.isfinite(rays_o)).any().int() + 2 * (~torch.isfinite(rays_d)).any().int()
+    if unit_directions:
+        flags = flags + 4 * ((rays_d * rays_d).sum(-1) - 1.0).abs().gt(2e-3).any().int()
+    return flags.reshape(1)
+
+
+def _raise_flags(flags: int) -> None:
+    problems = [p for k, p in enumerate(_RAY_PROBLEMS) if flags >> k & 1]
+    if problems:
+        raise ValueError("; ".join(problems))
 
 
 _configs: dict[tuple, KF.MarchConfig] = {}
@@ -213,6 +232,8 @@ def ray_marching(
     march: MarchOptions = MarchOptions(),
     *,
     before_sync: Callable[[], None] | None = None,
+    validate: bool = True,
+    unit_directions: bool = False,
 ) -> RaySamples:
     """March rays through ``grid`` and return the packed samples in occupied cells.
 
@@ -226,6 +247,11 @@ def ray_marching(
             the total: work queued there on the current stream keeps the GPU busy through the
             synchronisation (the trainer queues the previous step's optimizer update). It must
             not change the rays or the grid.
+        validate: check on the device that origins and directions are finite (and with
+            ``unit_directions`` that ``|d| = 1`` within 1e-3); the flags are read with the
+            sample count, so the check adds no host synchronisation. ValueError otherwise.
+            Training loops that make their own rays pass False (no extra launches).
+        unit_directions: with ``validate``, require unit directions (as ``render_rays`` does).
 
     Returns:
         :class:`RaySamples`.
@@ -256,7 +282,12 @@ def ray_marching(
         torch.cumsum(seg_counts, 0, dtype=torch.int32, out=seg_offsets[1:])
         if march.max_samples is not None:
             seg_offsets.clamp_(max=int(march.max_samples))
-        n_samples = _read_total(seg_offsets[-1:], before_sync)  # the one host synchronisation
+        total = seg_offsets[-1:]
+        if validate:
+            total = torch.cat([total, _ray_flags(rays_o, rays_d, unit_directions)])
+        n_samples, *flags = _read_total(total, before_sync)  # the one host synchronisation
+        if flags:
+            _raise_flags(flags[0])
     elif before_sync is not None:
         before_sync()
     ray_indices = torch.empty(n_samples, dtype=torch.int64, device=dev)
