@@ -241,6 +241,22 @@ def trace(o: wp.vec3, d: wp.vec3) -> float:
     return result
 
 
+# The direction through image point (u, w) of view v (pixel units, OpenGL camera axes):
+# d = normalize(R ((u - cx)/fx, -(w - cy)/fy, -1)), R the first three columns of c2w[v].
+@wp.func
+def view_direction(c2w: wp.array3d(dtype=wp.float32), intrinsics: wp.array2d(dtype=wp.float32), v: int,
+                   u: float, w: float) -> wp.vec3:
+    x = (u - intrinsics[v, 2]) / intrinsics[v, 0]
+    y = -(w - intrinsics[v, 3]) / intrinsics[v, 1]
+    return wp.normalize(
+        wp.vec3(
+            c2w[v, 0, 0] * x + c2w[v, 0, 1] * y - c2w[v, 0, 2],
+            c2w[v, 1, 0] * x + c2w[v, 1, 1] * y - c2w[v, 1, 2],
+            c2w[v, 2, 0] * x + c2w[v, 2, 1] * y - c2w[v, 2, 2],
+        )
+    )
+
+
 # Pixel (px, py) of view v, sample (sx, sy):  u = px + (sx + 1/2)/ss,  w = py + (sy + 1/2)/ss,
 # d = normalize(R ((u - cx)/fx, -(w - cy)/fy, -1)).  out = (mean colour of the hits, hits / ss^2).
 @wp.kernel
@@ -259,25 +275,14 @@ def render_views(
     pix = i - v * n_pix
     py = pix // width
     px = pix - py * width
-    fx = intrinsics[v, 0]
-    fy = intrinsics[v, 1]
-    cx = intrinsics[v, 2]
-    cy = intrinsics[v, 3]
     o = wp.vec3(c2w[v, 0, 3], c2w[v, 1, 3], c2w[v, 2, 3])
     inv_ss = 1.0 / float(ss)
     rgb = wp.vec3(0.0, 0.0, 0.0)
     hits = float(0.0)
     for sy in range(ss):
         for sx in range(ss):
-            x = (float(px) + (float(sx) + 0.5) * inv_ss - cx) / fx
-            y = -(float(py) + (float(sy) + 0.5) * inv_ss - cy) / fy
-            d = wp.normalize(
-                wp.vec3(
-                    c2w[v, 0, 0] * x + c2w[v, 0, 1] * y - c2w[v, 0, 2],
-                    c2w[v, 1, 0] * x + c2w[v, 1, 1] * y - c2w[v, 1, 2],
-                    c2w[v, 2, 0] * x + c2w[v, 2, 1] * y - c2w[v, 2, 2],
-                )
-            )
+            u = float(px) + (float(sx) + 0.5) * inv_ss
+            d = view_direction(c2w, intrinsics, v, u, float(py) + (float(sy) + 0.5) * inv_ss)
             t = trace(o, d)
             if t >= 0.0:
                 rgb = rgb + shade(o + t * d, d)

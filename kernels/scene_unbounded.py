@@ -18,7 +18,7 @@ import math
 
 import warp as wp
 
-from ngp_warp.kernels.scene import AMBIENT, DIFFUSE, LIGHT_DIR, parity, shade, trace
+from ngp_warp.kernels.scene import AMBIENT, DIFFUSE, LIGHT_DIR, parity, shade, trace, view_direction
 
 wp.set_module_options({"enable_backward": False})
 
@@ -228,15 +228,8 @@ def render_views(
     total = wp.vec3(0.0, 0.0, 0.0)
     for sy in range(ss):
         for sx in range(ss):
-            x = (float(px) + (float(sx) + 0.5) * inv_ss - intrinsics[v, 2]) / intrinsics[v, 0]
-            y = -(float(py) + (float(sy) + 0.5) * inv_ss - intrinsics[v, 3]) / intrinsics[v, 1]
-            d = wp.normalize(
-                wp.vec3(
-                    c2w[v, 0, 0] * x + c2w[v, 0, 1] * y - c2w[v, 0, 2],
-                    c2w[v, 1, 0] * x + c2w[v, 1, 1] * y - c2w[v, 1, 2],
-                    c2w[v, 2, 0] * x + c2w[v, 2, 1] * y - c2w[v, 2, 2],
-                )
-            )
+            u = float(px) + (float(sx) + 0.5) * inv_ss
+            d = view_direction(c2w, intrinsics, v, u, float(py) + (float(sy) + 0.5) * inv_ss)
             c, _t = radiance(o, d)
             total = total + c
     out[i] = total * (inv_ss * inv_ss)

@@ -6,17 +6,14 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
-import tempfile
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import torch
 
 from ngp_warp import _wp
-from ngp_warp.data import DataError
 from ngp_warp.kernels import scene as K
+from ngp_warp.scene_folder import check_positive_ints, check_views, write_scene_folder, write_split
 
 CAMERA_ANGLE_X = 0.6911112070083618  # the Blender scenes' horizontal field of view, radians
 CAMERA_RADIUS = 4.0
@@ -42,16 +39,7 @@ def render_demo_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, h
         \\alpha = \\frac{1}{ss^2} \\sum_s [\\text{ray } s \\text{ hits}],\\qquad
         \\mathrm{rgb} = \\frac{\\sum_{s\\,\\text{hits}} c(x_s, d_s)}{\\sum_s [\\text{ray } s \\text{ hits}]}.
     """
-    for name, t, shape in (("c2w", c2w, (3, 4)), ("intrinsics", intrinsics, (4,))):
-        if not isinstance(t, torch.Tensor) or t.dim() != len(shape) + 1 or tuple(t.shape[1:]) != shape:
-            raise ValueError(f"{name} must be a tensor of shape [V, {', '.join(map(str, shape))}]")
-        if t.dtype != torch.float32:
-            raise ValueError(f"{name} must be float32, got {t.dtype}")
-    if intrinsics.shape[0] != c2w.shape[0] or intrinsics.device != c2w.device:
-        raise ValueError("c2w and intrinsics must hold the same number of views on the same device")
-    for name, v in (("width", width), ("height", height), ("supersample", supersample)):
-        if not isinstance(v, int) or v < 1:
-            raise ValueError(f"{name} must be a positive int, got {v!r}")
+    check_views(c2w, intrinsics, width, height, supersample)
     device = _wp.device_of(c2w)
     n_views = c2w.shape[0]
     out = torch.empty(n_views * height * width, 4, dtype=torch.float32, device=c2w.device)
@@ -115,22 +103,6 @@ def _scene_description(width, height, n_train, n_test, seed, supersample) -> dic
     }
 
 
-def _write_split(folder: Path, split: str, c2w: np.ndarray, width: int, height: int, supersample: int) -> None:
-    fx = 0.5 * width / math.tan(0.5 * CAMERA_ANGLE_X)
-    c2w32 = torch.from_numpy(c2w).float()  # exactly the float32 matrices load_scene will return
-    intrinsics = torch.tensor([[fx, fx, width / 2, height / 2]], dtype=torch.float32).expand(len(c2w), 4)
-    rgba = render_demo_views(c2w32, intrinsics, width, height, supersample)
-    rgba = (rgba * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()
-    (folder / split).mkdir()
-    frames = []
-    for i, (image, m) in enumerate(zip(rgba, c2w)):
-        iio.imwrite(folder / split / f"r_{i}.png", image)
-        frames.append({"file_path": f"./{split}/r_{i}",
-                       "transform_matrix": np.vstack([m, [0.0, 0.0, 0.0, 1.0]]).tolist()})
-    text = json.dumps({"camera_angle_x": CAMERA_ANGLE_X, "frames": frames}, indent=2)
-    (folder / f"transforms_{split}.json").write_text(text)
-
-
 def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100, n_train: int = 50,
                      n_test: int = 10, seed: int = 0, supersample: int = 3, overwrite: bool = False) -> Path:
     """Render the demo scene and write it as a NeRF-synthetic folder at ``out_dir``.
@@ -152,41 +124,18 @@ def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100
     Raises:
         DataError: ``out_dir`` exists (without ``overwrite``) or cannot be written.
     """
-    for name, v in (("width", width), ("height", height), ("n_train", n_train), ("n_test", n_test),
-                    ("supersample", supersample)):
-        if not isinstance(v, int) or v < 1:
-            raise ValueError(f"{name} must be a positive int, got {v!r}")
-    out = Path(out_dir)
-    if out.exists() and not overwrite:
-        raise DataError(f"{out}: already exists (choose another folder or overwrite it)")
-    created = [p for p in [out.parent, *out.parent.parents] if not p.exists()]
-    tmp, done = None, False
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
-        train, test = demo_cameras(n_train, n_test, seed)
-        _write_split(tmp, "train", train, width, height, supersample)
-        _write_split(tmp, "test", test, width, height, supersample)
+    check_positive_ints(width=width, height=height, n_train=n_train, n_test=n_test, supersample=supersample)
+
+    def render(c2w: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+        return render_demo_views(c2w, intrinsics, width, height, supersample)
+
+    def fill(tmp: Path) -> None:
+        for split, c2w in zip(("train", "test"), demo_cameras(n_train, n_test, seed)):
+            write_split(tmp, split, c2w, width, height, CAMERA_ANGLE_X, render, {})
         description = _scene_description(width, height, n_train, n_test, seed, supersample)
         (tmp / "scene.json").write_text(json.dumps(description, indent=2))
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-        done = True
-    except OSError as e:
-        raise DataError(f"{out}: cannot write the demo scene ({e.strerror or e})") from None
-    finally:
-        if not done:
-            if tmp is not None:
-                shutil.rmtree(tmp, ignore_errors=True)
-            for p in created:  # innermost first; stops at the first that is not empty
-                try:
-                    p.rmdir()
-                except FileNotFoundError:
-                    continue
-                except OSError:
-                    break
-    return out
+
+    return write_scene_folder(out_dir, overwrite, "the demo scene", fill)
 
 
 # ---- the demo scene in a textured room (for structure from motion) --------------------------

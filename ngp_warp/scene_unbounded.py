@@ -14,16 +14,14 @@ import json
 import math
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import torch
 
 from ngp_warp import _wp
-from ngp_warp.atomic import atomic_dir
-from ngp_warp.data_error import DataError
 from ngp_warp.kernels import scene as objects
 from ngp_warp.kernels import scene_unbounded as K
 from ngp_warp.scene import look_at
+from ngp_warp.scene_folder import check_positive_ints, check_views, write_scene_folder, write_split
 
 CAMERA_ANGLE_X = 0.9  # horizontal field of view, radians
 RING_RADIUS = 3.6  # cameras circle the centre at this distance (jittered by 5 % in training)
@@ -32,19 +30,6 @@ TEST_HEIGHTS = (0.9, 1.6)  # test views alternate between these, between the tra
 LOOK_AT = (0.0, 0.0, 0.0)  # every camera looks at the objects' centre
 INNER_HALF = 4.0  # the inner (uncontracted) box is [-INNER_HALF, INNER_HALF]^3
 CONTRACTION = "l2"
-
-
-def _check_views(c2w, intrinsics, width, height, supersample) -> None:
-    for name, t, shape in (("c2w", c2w, (3, 4)), ("intrinsics", intrinsics, (4,))):
-        if not isinstance(t, torch.Tensor) or t.dim() != len(shape) + 1 or tuple(t.shape[1:]) != shape:
-            raise ValueError(f"{name} must be a tensor of shape [V, {', '.join(map(str, shape))}]")
-        if t.dtype != torch.float32:
-            raise ValueError(f"{name} must be float32, got {t.dtype}")
-    if intrinsics.shape[0] != c2w.shape[0] or intrinsics.device != c2w.device:
-        raise ValueError("c2w and intrinsics must hold the same number of views on the same device")
-    for name, v in (("width", width), ("height", height), ("supersample", supersample)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"{name} must be a positive int, got {v!r}")
 
 
 def render_unbounded_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
@@ -61,7 +46,7 @@ def render_unbounded_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: i
         [V, H, W, 3] float32 RGB in [0, 1]: the mean colour of the pixel's ss² rays (every ray
         has a colour: the environment closes the scene).
     """
-    _check_views(c2w, intrinsics, width, height, supersample)
+    check_views(c2w, intrinsics, width, height, supersample)
     n_views = c2w.shape[0]
     out = torch.empty(n_views * height * width, 3, dtype=torch.float32, device=c2w.device)
     _wp.launch(K.render_views, out.shape[0],
@@ -141,22 +126,6 @@ def _description(width, height, n_train, n_test, seed, supersample) -> dict:
     }
 
 
-def _write_split(folder: Path, split: str, c2w: np.ndarray, width: int, height: int, supersample: int) -> None:
-    fx = 0.5 * width / math.tan(0.5 * CAMERA_ANGLE_X)
-    c2w32 = torch.from_numpy(c2w).float()  # exactly the float32 matrices load_scene will return
-    intrinsics = torch.tensor([[fx, fx, width / 2, height / 2]], dtype=torch.float32).expand(len(c2w), 4)
-    rgb = render_unbounded_views(c2w32, intrinsics, width, height, supersample)
-    rgb = (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()
-    (folder / split).mkdir()
-    frames = []
-    for i, (image, m) in enumerate(zip(rgb, c2w)):
-        iio.imwrite(folder / split / f"r_{i}.png", image)
-        frames.append({"file_path": f"./{split}/r_{i}",
-                       "transform_matrix": np.vstack([m, [0.0, 0.0, 0.0, 1.0]]).tolist()})
-    meta = {"camera_angle_x": CAMERA_ANGLE_X, **scene_keys(), "frames": frames}
-    (folder / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
-
-
 def write_unbounded_scene(out_dir: str | Path, *, width: int = 100, height: int = 100, n_train: int = 60,
                           n_test: int = 10, seed: int = 0, supersample: int = 3, overwrite: bool = False) -> Path:
     """Render the unbounded scene and write it as a scene folder at ``out_dir`` (see the module doc).
@@ -178,32 +147,15 @@ def write_unbounded_scene(out_dir: str | Path, *, width: int = 100, height: int 
     Raises:
         DataError: ``out_dir`` exists (without ``overwrite``) or cannot be written.
     """
-    for name, v in (("width", width), ("height", height), ("n_train", n_train), ("n_test", n_test),
-                    ("supersample", supersample)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"{name} must be a positive int, got {v!r}")
-    out = Path(out_dir)
-    if out.exists() and not overwrite:
-        raise DataError(f"{out}: already exists (choose another folder or overwrite it)")
-    created = [p for p in [out.parent, *out.parent.parents] if not p.exists()]
-    done = False
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_dir(out) as tmp:
-            train, test = unbounded_cameras(n_train, n_test, seed)
-            _write_split(tmp, "train", train, width, height, supersample)
-            _write_split(tmp, "test", test, width, height, supersample)
-            description = _description(width, height, n_train, n_test, seed, supersample)
-            (tmp / "scene.json").write_text(json.dumps(description, indent=2))
-        done = True
-    except OSError as e:
-        raise DataError(f"{out}: cannot write the unbounded scene ({e.strerror or e})") from None
-    finally:
-        for p in [] if done else created:  # innermost first; stops at the first that is not empty
-            try:
-                p.rmdir()
-            except FileNotFoundError:
-                continue
-            except OSError:
-                break
-    return out
+    check_positive_ints(width=width, height=height, n_train=n_train, n_test=n_test, supersample=supersample)
+
+    def render(c2w: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+        return render_unbounded_views(c2w, intrinsics, width, height, supersample)
+
+    def fill(tmp: Path) -> None:
+        for split, c2w in zip(("train", "test"), unbounded_cameras(n_train, n_test, seed)):
+            write_split(tmp, split, c2w, width, height, CAMERA_ANGLE_X, render, scene_keys())
+        description = _description(width, height, n_train, n_test, seed, supersample)
+        (tmp / "scene.json").write_text(json.dumps(description, indent=2))
+
+    return write_scene_folder(out_dir, overwrite, "the unbounded scene", fill)

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import ngp_warp.scene as demo
+import ngp_warp.scene_folder as scene_folder
 from ngp_warp._reference import scene as ref
 from ngp_warp.data import DataError, image_rays, load_scene
 
@@ -125,7 +126,7 @@ def test_failure_mid_write_removes_everything_it_made(tmp_path, monkeypatch):
             raise OSError(28, "No space left on device")
         path.write_bytes(b"png")
 
-    monkeypatch.setattr(demo.iio, "imwrite", failing_imwrite)
+    monkeypatch.setattr(scene_folder.iio, "imwrite", failing_imwrite)
     with pytest.raises(DataError, match="No space left on device"):
         demo.write_demo_scene(tmp_path / "new" / "deeper" / "scene", **TINY)
     assert len(calls) == 3

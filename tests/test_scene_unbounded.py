@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+import ngp_warp.scene_folder as scene_folder
 import ngp_warp.scene_unbounded as unbounded
 from ngp_warp._reference import scene_unbounded as ref
 from ngp_warp.data import load_scene
@@ -151,7 +152,7 @@ def test_existing_folder_is_kept_and_failures_leave_nothing(tmp_path, monkeypatc
             raise OSError(28, "No space left on device")
         path.write_bytes(b"png")
 
-    monkeypatch.setattr(unbounded.iio, "imwrite", failing_imwrite)
+    monkeypatch.setattr(scene_folder.iio, "imwrite", failing_imwrite)
     with pytest.raises(DataError, match="No space left on device") as e:
         unbounded.write_unbounded_scene(tmp_path / "new" / "deeper" / "scene", **TINY)
     assert "\n" not in str(e.value)

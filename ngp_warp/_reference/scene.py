@@ -97,8 +97,10 @@ def trace(o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
     return hit, t
 
 
-def render_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, ss: int) -> torch.Tensor:
-    """Twin of ``kernels.scene.render_views``: [V, 3, 4], [V, 4] -> [V, H, W, 4] float64."""
+def view_rays(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
+              ss: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ss x ss stratified rays of every pixel of every view, float64: origins and unit
+    directions [V * H * W * ss², 3], views, then rows, columns and sub-samples, in that order."""
     c2w, intrinsics = c2w.double(), intrinsics.double()
     v, py, px, sy, sx = torch.meshgrid(
         torch.arange(len(c2w)), torch.arange(height), torch.arange(width), torch.arange(ss), torch.arange(ss),
@@ -109,8 +111,12 @@ def render_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height
     y = -(py + (sy + 0.5) / ss - cy) / fy
     rot = c2w[v, :, :3]
     d = rot[:, :, 0] * x[:, None] + rot[:, :, 1] * y[:, None] - rot[:, :, 2]
-    d = d / d.norm(dim=-1, keepdim=True)
-    o = c2w[v, :, 3]
+    return c2w[v, :, 3], d / d.norm(dim=-1, keepdim=True)
+
+
+def render_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, ss: int) -> torch.Tensor:
+    """Twin of ``kernels.scene.render_views``: [V, 3, 4], [V, 4] -> [V, H, W, 4] float64."""
+    o, d = view_rays(c2w, intrinsics, width, height, ss)
     hit, t = trace(o, d)
     rgb = torch.zeros_like(o)
     rgb[hit] = shade(o[hit] + t[hit, None] * d[hit], d[hit])

@@ -99,16 +99,6 @@ def radiance(o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
 
 def render_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, ss: int) -> torch.Tensor:
     """Twin of ``kernels.scene_unbounded.render_views``: [V, 3, 4], [V, 4] -> [V, H, W, 3] float64."""
-    c2w, intrinsics = c2w.double(), intrinsics.double()
-    v, py, px, sy, sx = torch.meshgrid(
-        torch.arange(len(c2w)), torch.arange(height), torch.arange(width), torch.arange(ss), torch.arange(ss),
-        indexing="ij")
-    v, py, px, sy, sx = (t.reshape(-1) for t in (v, py, px, sy, sx))
-    fx, fy, cx, cy = intrinsics[v].unbind(-1)
-    x = (px + (sx + 0.5) / ss - cx) / fx
-    y = -(py + (sy + 0.5) / ss - cy) / fy
-    rot = c2w[v, :, :3]
-    d = rot[:, :, 0] * x[:, None] + rot[:, :, 1] * y[:, None] - rot[:, :, 2]
-    d = d / d.norm(dim=-1, keepdim=True)
-    colour, _ = radiance(c2w[v, :, 3], d)
+    o, d = objects.view_rays(c2w, intrinsics, width, height, ss)
+    colour, _ = radiance(o, d)
     return colour.reshape(len(c2w), height, width, ss * ss, 3).mean(-2)
