@@ -58,13 +58,25 @@ class TrainConfig:
                        optional=("steps", "seconds", "target_samples"))
         if not 0.0 <= self.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
+        if type(self.seed) is not int or not 0 <= self.seed < 2**63:
+            raise ValueError(f"seed must be an integer in [0, 2^63), got {self.seed!r}")
         self.field.check()
+        _check_finite(self)
 
     def budget(self) -> tuple[int | None, float | None]:
         """(steps, seconds) to train for: 20000 steps when neither is set."""
         if self.steps is None and self.seconds is None:
             return 20000, None
         return self.steps, self.seconds
+
+
+def _check_finite(config: TrainConfig) -> None:
+    """ValueError naming the first float setting (the field's included) that is NaN or infinite."""
+    for target, prefix in ((config, ""), (config.field, "field.")):
+        for f in dataclasses.fields(target):
+            value = getattr(target, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"{prefix}{f.name} must be finite, got {value!r}")
 
 
 def apply_overrides(config: TrainConfig, settings: list[str]) -> TrainConfig:
