@@ -81,8 +81,31 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
         "n_test_images": len(per_image),
         "per_image": per_image,
     }
-    atomic_write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2))
+    metrics = finite_or_null(metrics)
+    atomic_write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False))
     return metrics
+
+
+def finite_or_null(metrics: dict) -> dict:
+    """``metrics`` with every NaN or infinite number (nested ones too) replaced by None, and a
+    ``notes`` entry naming them, so that the JSON is strict (no bare NaN)."""
+    replaced = []
+
+    def clean(value, where: str):
+        if isinstance(value, float) and not np.isfinite(value):
+            replaced.append(f"{where} ({value})")
+            return None
+        if isinstance(value, dict):
+            return {k: clean(v, f"{where}.{k}" if where else k) for k, v in value.items()}
+        if isinstance(value, list):
+            return [clean(v, f"{where}[{i}]") for i, v in enumerate(value)]
+        return value
+
+    cleaned = clean(metrics, "")
+    if replaced:
+        note = f"not finite, written as null: {', '.join(replaced[:5])}{' ...' if len(replaced) > 5 else ''}"
+        cleaned["notes"] = [*cleaned.get("notes", []), note]
+    return cleaned
 
 
 def _rotation(axis: torch.Tensor, angle: float) -> torch.Tensor:

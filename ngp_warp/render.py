@@ -52,6 +52,20 @@ def _check_sigmas(sigmas, n: int, source: str) -> None:
                          f"got {getattr(sigmas, 'shape', type(sigmas).__name__)}")
 
 
+def _checked(fn: Callable, name: str) -> Callable:
+    """``fn`` (a field or density function) that raises ValueError when the σ it returns (its
+    first output) is negative or not finite; reading the check is one host sync."""
+    def checked(*inputs):
+        out = fn(*inputs)
+        sigmas = out[0] if isinstance(out, tuple) else out
+        if isinstance(sigmas, torch.Tensor) and sigmas.numel() and not bool((sigmas >= 0).all()):
+            raise ValueError(f"{name} returned negative or NaN sigmas (densities must be ≥ 0, e.g. through "
+                             f"softplus or exp)")
+        return out
+
+    return checked
+
+
 def _prune(samples, sigma_fn, grid: OccupancyGrid, early_stop_eps: float, capacity: int | None) -> PrunedSamples:
     with torch.no_grad():
         sigmas = sigma_fn(samples.positions)
@@ -108,6 +122,7 @@ def render_rays(
     sample_capacity: int | None = None,
     return_samples: bool = False,
     before_sync: Callable[[], None] | None = None,
+    validate: bool = True,
 ) -> dict:
     """Render rays through ``grid`` with the radiance field ``field_fn``.
 
@@ -138,6 +153,10 @@ def render_rays(
         before_sync: as in :func:`ngp_warp.ray_marching`: called once, when the march has
             queued its count and before the host waits for it (independent device work there
             hides the synchronisation).
+        validate: check the inputs (on by default for direct calls): finite origins and unit
+            directions (read with the march's sample count: no extra host sync) and σ ≥ 0 from
+            ``field_fn`` and ``sigma_fn`` (one host sync each); ValueError otherwise. Training
+            and rendering loops whose rays and field are known good pass False.
 
     Returns:
         dict with ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] (float32, differentiable w.r.t.
@@ -152,7 +171,10 @@ def render_rays(
         raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
     if sample_capacity is not None and (sigma_fn is None or sample_capacity < 1):
         raise ValueError("sample_capacity needs a sigma_fn and must be ≥ 1")
-    samples = ray_marching(rays_o, rays_d, grid, march, before_sync=before_sync)
+    samples = ray_marching(rays_o, rays_d, grid, march, before_sync=before_sync, validate=validate,
+                           unit_directions=True)
+    if validate:
+        field_fn, sigma_fn = _checked(field_fn, "field_fn"), sigma_fn and _checked(sigma_fn, "sigma_fn")
     bg = _background(background, rays_o.shape[0], rays_o.device)
     extra = {}
     if sigma_fn is not None:
