@@ -21,6 +21,7 @@ from ngp_warp.data import Scene, Split
 from ngp_warp.distortion import distortion_loss_packed
 from ngp_warp.field import NGPField
 from ngp_warp.field_optimizer import FieldOptimizer
+from ngp_warp.memory_estimate import check_fits
 from ngp_warp.model import RadianceModel
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.ray_loss import ray_loss
@@ -40,12 +41,14 @@ class Trainer:
         device: ``cpu``, ``cuda`` or ``cuda:N``; None picks CUDA when present.
 
     Raises:
-        ValueError: naming a setting out of range.
+        ValueError: naming a setting out of range;
+            :class:`~ngp_warp.memory_estimate.SettingsTooLarge` for settings that cannot fit in memory.
     """
 
     def __init__(self, scene: Scene, config: TrainConfig | None = None, device: str | None = None):
         self.device = torch.device(device or default_device())
         self.config = cfg = resolve_defaults(config or TrainConfig(), scene, self.device.type)
+        check_fits(cfg, scene, self.device)  # SettingsTooLarge before allocating
         torch.manual_seed(cfg.seed)
         self.scene = scene
         self.train_split: Split = scene.train.to(self.device)
@@ -167,11 +170,18 @@ class Trainer:
         self.flush()
         return self.weights.averaged_weights()
 
-    def train(self, show_progress: bool = True) -> None:
+    def train(self, show_progress: bool = True, checkpoint: Callable[[], None] | None = None,
+              checkpoint_every: float = 300.0) -> None:
         """Train until the step or time budget of the config is spent, with a progress bar on
-        stderr (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps)."""
+        stderr (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps).
+
+        The loss is read every ``READOUT_EVERY`` steps and after the last (the readout's one
+        host sync, bar or not): a non-finite loss raises :class:`TrainingDiverged`.
+        ``checkpoint`` (e.g. a save to disk), when given, is called at the first readout after
+        each ``checkpoint_every`` seconds of wall-clock."""
         steps, seconds = self.config.budget()
         start_step, start_seconds = self.step_count, self.train_seconds
+        last_checkpoint = time.monotonic()
 
         def done() -> float:  # the bar counts steps, or seconds with a time budget only
             return self.step_count - start_step if steps else round(self.train_seconds - start_seconds, 1)
@@ -187,10 +197,17 @@ class Trainer:
                 progress = max(self.step_count / (start_step + steps) if steps else 0.0,
                                clock / (start_seconds + seconds) if seconds else 0.0)
                 stats = self.step(progress)
-                if show_progress and (self.step_count % READOUT_EVERY == 0 or self.step_count == 1):
-                    _readout(bar, stats)
-                    bar.update(done() - bar.n)
+                if self.step_count % READOUT_EVERY == 0 or self.step_count == 1:
+                    _check_finite(stats, self.step_count)
+                    if show_progress:
+                        _readout(bar, stats)
+                        bar.update(done() - bar.n)
+                    if checkpoint is not None and time.monotonic() - last_checkpoint >= checkpoint_every:
+                        checkpoint()
+                        last_checkpoint = time.monotonic()
             bar.update(done() - bar.n)
+        if self.step_count > start_step:
+            _check_finite(stats, self.step_count)
         self.flush()
 
     # -- inference -------------------------------------------------------------------------
@@ -225,6 +242,17 @@ class Trainer:
         self.rays.load_state_dict(state)
         self.step_count = state["step"]
         self.train_seconds = state["train_seconds"]
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss became NaN or infinite; the message is one line naming the step."""
+
+
+def _check_finite(stats: dict, step: int) -> None:
+    """TrainingDiverged when a step's loss (read on the host: a sync) is not finite."""
+    loss = float(stats["loss"])
+    if not math.isfinite(loss):
+        raise TrainingDiverged(f"training diverged: the loss is {loss} at step {step} (try a lower lr)")
 
 
 def _readout(bar: tqdm, stats: dict) -> None:
