@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import datetime
 import os
+import sys
 from functools import partial
 
 import torch
@@ -53,8 +54,11 @@ def started_by_torchrun() -> bool:
 
 def join(device: str, backend: str | None = None, timeout: datetime.timedelta | None = None) -> str:
     """Join the process group torchrun set up (``env://``) and return this rank's device:
-    ``cuda:LOCAL_RANK`` for a CUDA ``device``, else ``cpu``. ``backend`` defaults to NCCL on
-    CUDA and gloo on the CPU."""
+    ``cuda:LOCAL_RANK`` for a CUDA ``device`` (``auto``: CUDA when present), else ``cpu``.
+    ``backend`` defaults to NCCL on CUDA and gloo on the CPU."""
+    from ngp_warp.config import default_device
+
+    device = default_device() if device in (None, "auto") else device
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
     if device.startswith("cuda"):
         device = f"cuda:{local_rank}"
@@ -69,6 +73,39 @@ def leave() -> None:
     """Leave the process group, if this process joined one."""
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
+
+
+def join_data_parallel(args) -> bool:
+    """``train`` under torchrun with more than one rank: join the group, put this rank's device
+    in ``args.device`` and return True; otherwise False."""
+    if not started_by_torchrun():
+        return False
+    args.device = join(args.device)
+    return True
+
+
+def launch_ranks(args, argv: list[str]) -> int:
+    """``--gpus N``: run the command line ``argv`` (without ``--gpus``) as N ranks under
+    torchrun, one GPU each (N CPU processes with ``--device cpu``); the exit code of
+    :func:`launch`, or 2 after one line when N does not fit the machine."""
+    error = None
+    if started_by_torchrun():
+        error = "torchrun already started the ranks (drop --gpus)"
+    elif args.device != "cpu":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count < args.gpus:
+            error = f"this machine has {count} CUDA GPU(s) (with --device cpu: {args.gpus} CPU processes)"
+    if error is not None:
+        print(f"ngp-warp: error: --gpus {args.gpus}: {error}", file=sys.stderr)
+        return 2
+    rest, i = [], 0
+    while i < len(argv):  # argv without "--gpus N" / "--gpus=N"
+        if argv[i] == "--gpus":
+            i += 1
+        elif not argv[i].startswith("--gpus="):
+            rest.append(argv[i])
+        i += 1
+    return launch(args.gpus, rest)
 
 
 def launch(n_processes: int, argv: list[str]) -> int:

@@ -1,0 +1,188 @@
+"""``ngp-warp fit-many MANIFEST --out DIR``: one radiance field per scene of a list.
+
+MANIFEST is a text file naming scene folders, one a line (relative to the file; blank lines and
+``#`` comments are skipped; a line may be a glob), or a glob itself. Under torchrun (or with
+``--gpus N``) the scenes are dealt out over the ranks, scene ``i`` to rank ``i mod N``; each rank
+trains its scenes one at a time, on its own GPU or as a CPU process, through the ``train``
+command's path, into ``DIR/<scene folder name>/`` (checkpoint, metrics.json, renders, ...). A
+scene whose metrics.json is complete is skipped; one with a checkpoint resumes with what is left
+of the budget. Rank 0 then writes ``DIR/summary.json`` and prints the table (PSNR, time per scene).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import sys
+import time
+from pathlib import Path
+
+from ngp_warp.data_error import DataError
+
+SUMMARY = "summary.json"
+METRICS_KEYS = ("psnr", "steps", "train_seconds", "n_test_images", "per_image")
+
+
+class FitManyError(DataError):
+    """A manifest that names no usable scene folders, a bad option, or scenes that failed; one
+    line. A DataError, which the CLI reports also when run as ``python -m ngp_warp.cli`` (as
+    torchrun runs it), where the CLI's own error class is another one."""
+
+
+def _expand(pattern: str, base: Path) -> list[Path]:
+    path = Path(pattern).expanduser()
+    path = path if path.is_absolute() else base / path
+    if glob.has_magic(pattern):
+        return sorted(Path(p) for p in glob.glob(str(path)) if Path(p).is_dir())
+    return [path]
+
+
+def read_manifest(manifest: str) -> list[Path]:
+    """The scene folders MANIFEST names, in its order (a glob: sorted). Raises FitManyError for a
+    missing manifest, a named folder that does not exist, no scenes, or two scenes with one
+    folder name (their run folders would collide)."""
+    if Path(manifest).is_file():
+        try:
+            lines = Path(manifest).read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as e:
+            raise FitManyError(f"{manifest}: unreadable manifest ({e})") from None
+        base = Path(manifest).resolve().parent
+        items = [line.strip() for line in lines if line.strip() and not line.strip().startswith("#")]
+        scenes = [p for item in items for p in _expand(item, base)]
+    elif glob.has_magic(manifest):
+        scenes = _expand(manifest, Path.cwd())
+    else:
+        raise FitManyError(f"{manifest}: no such manifest file (a text file of scene folders, or a glob)")
+    missing = [str(p) for p in scenes if not p.is_dir()]
+    if missing:
+        raise FitManyError(f"{manifest}: scene folder {missing[0]} does not exist")
+    if not scenes:
+        raise FitManyError(f"{manifest}: names no scene folders")
+    names = [p.name for p in scenes]
+    twice = next((n for n in names if names.count(n) > 1), None)
+    if twice is not None:
+        raise FitManyError(f"{manifest}: two scenes are named {twice!r} (their run folders would be one)")
+    return scenes
+
+
+def finished_metrics(run_dir: Path) -> dict | None:
+    """The metrics of a finished run in ``run_dir``: metrics.json with every key and one score
+    per test image; None otherwise."""
+    try:
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(metrics, dict) or any(k not in metrics for k in METRICS_KEYS):
+        return None
+    return metrics if len(metrics["per_image"]) == metrics["n_test_images"] > 0 else None
+
+
+def remaining_budget(args, checkpoint: Path) -> tuple[int | None, float | None]:
+    """(steps, seconds) left of the command line's budget after the run saved in ``checkpoint``."""
+    from ngp_warp.checkpoint import read_checkpoint
+    from ngp_warp.config import TrainConfig
+
+    state = read_checkpoint(checkpoint)
+    steps, seconds = TrainConfig(steps=args.steps, seconds=args.seconds).budget()
+    return (None if steps is None else max(0, steps - state["step"]),
+            None if seconds is None else max(0.0, seconds - state["train_seconds"]))
+
+
+def fit_scene(scene: Path, run_dir: Path, args) -> dict:
+    """Train, evaluate and render one scene into ``run_dir`` (skipped when finished, resumed
+    from its checkpoint); its row of the summary. A user mistake in the scene is one printed
+    line and a ``failed`` row."""
+    from ngp_warp import cli
+    from ngp_warp.checkpoint import CheckpointError
+    from ngp_warp.data import DataError
+    from ngp_warp.run_folder import RunFolderError
+
+    row = {"scene": scene.name, "path": str(scene), "run": str(run_dir)}
+    metrics = finished_metrics(run_dir)
+    if metrics is not None:
+        return {**row, "status": "skipped", **_scores(metrics), "wall_seconds": None}
+    start = time.perf_counter()
+    resume = (run_dir / cli.CHECKPOINT).is_file()
+    try:
+        options = argparse.Namespace(**{**vars(args), "resume": resume, "overwrite": args.overwrite and not resume})
+        if resume:
+            options.steps, options.seconds = remaining_budget(args, run_dir / cli.CHECKPOINT)
+        metrics = cli._train_and_report(scene, run_dir, options, config=None if resume else cli._train_config(args))
+    except (cli.UserError, DataError, CheckpointError, RunFolderError) as e:
+        print(f"ngp-warp: error: {scene.name}: {e}", file=sys.stderr)
+        return {**row, "status": "failed", "error": str(e), "wall_seconds": time.perf_counter() - start}
+    status = "resumed" if resume else "trained"
+    return {**row, "status": status, **_scores(metrics), "wall_seconds": time.perf_counter() - start}
+
+
+def _scores(metrics: dict) -> dict:
+    return {k: metrics[k] for k in ("psnr", "ssim", "steps", "train_seconds")}
+
+
+def summary_table(rows: list[dict]) -> str:
+    """The summary as text: one line per scene, then the totals."""
+    lines = [f"{'scene':<24} {'status':<8} {'PSNR':>7} {'steps':>7} {'train s':>8} {'wall s':>8}"]
+    for r in rows:
+        psnr = "-" if r.get("psnr") is None else f"{r['psnr']:.2f}"
+        steps = "-" if r.get("steps") is None else str(r["steps"])
+        train = "-" if r.get("train_seconds") is None else f"{r['train_seconds']:.1f}"
+        wall = "-" if r.get("wall_seconds") is None else f"{r['wall_seconds']:.1f}"
+        lines.append(f"{r['scene'][:24]:<24} {r['status']:<8} {psnr:>7} {steps:>7} {train:>8} {wall:>8}")
+    return "\n".join(lines)
+
+
+def _all_rows(rows: list[dict]) -> list[dict]:
+    """Every rank's rows, on every rank (gathered through the process group, if any)."""
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()):
+        return rows
+    gathered = [None] * dist.get_world_size()
+    dist.all_gather_object(gathered, rows)
+    return [row for part in gathered for row in part]
+
+
+def cmd_fit_many(args) -> None:
+    from ngp_warp import cli
+    from ngp_warp.atomic import atomic_write_text
+    from ngp_warp.distributed import FIT_MANY_TIMEOUT, is_main_rank, join, rank_and_size, started_by_torchrun
+
+    scenes = read_manifest(args.manifest)  # bad input: one line before anything is written
+    try:
+        cli._train_config(args)
+        out = cli._writable_dir(Path(args.out))
+    except cli.UserError as e:
+        raise FitManyError(str(e)) from None
+    if started_by_torchrun():  # coordination only: gloo, also between GPUs
+        args.device = join(args.device, backend="gloo", timeout=FIT_MANY_TIMEOUT)
+    rank, world = rank_and_size()
+    args.quiet = args.quiet or rank != 0  # one rank's progress bars on the terminal
+    start = time.perf_counter()
+    rows = [fit_scene(scene, out / scene.name, args) for scene in scenes[rank::world]]
+    rows = sorted(_all_rows(rows), key=lambda r: [s.name for s in scenes].index(r["scene"]))
+    wall = time.perf_counter() - start
+    fitted = sum(r["status"] in ("trained", "resumed") for r in rows)
+    failed = [r["scene"] for r in rows if r["status"] == "failed"]
+    if is_main_rank():
+        summary = {"ranks": world, "wall_seconds": wall, "scenes_per_hour": 3600.0 * fitted / wall,
+                   "scenes": rows}
+        atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2))
+        print(summary_table(rows))
+        print(f"{len(rows)} scenes ({fitted} fitted, {len(rows) - fitted - len(failed)} skipped as finished, "
+              f"{len(failed)} failed) on {world} rank(s) in {wall:.1f} s; wrote {out / SUMMARY}")
+    if failed:
+        raise FitManyError(f"{len(failed)} of {len(rows)} scenes failed: {', '.join(failed)} (see {out / SUMMARY})")
+
+
+def add_fit_many_parser(sub, training, common, folder, positive_int) -> argparse.ArgumentParser:
+    """The ``fit-many`` subcommand, with the ``train`` command's training options (``training``,
+    ``common``: the CLI's option groups; ``folder``, ``positive_int``: its argument types)."""
+    f = sub.add_parser("fit-many", help="train one field per scene of a manifest, scenes spread over ranks")
+    f.add_argument("manifest", help="text file of scene folders (one a line, relative to it) or a glob")
+    f.add_argument("--out", type=folder, required=True, help="output folder: one run folder per scene")
+    f.add_argument("--gpus", type=positive_int, default=1, help="ranks through torchrun, one GPU each (README)")
+    training(f)
+    common(f)
+    f.set_defaults(func=cmd_fit_many)
+    return f
