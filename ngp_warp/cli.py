@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -31,7 +32,7 @@ def _writable_dir(path: Path) -> Path:
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
-        probe = path / ".ngp-warp-write-test"
+        probe = path / f".ngp-warp-write-test-{os.getpid()}"  # data-parallel ranks probe at once
         probe.write_text("")
         probe.unlink()
     except OSError as e:
@@ -91,6 +92,12 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
         trainer = Trainer(scene, config, device=device)
+    if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
+        from ngp_warp.distributed import is_main_rank, make_data_parallel
+
+        make_data_parallel(trainer)
+        if not is_main_rank():
+            return trainer.train(show_progress=False)
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
           f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "
@@ -128,8 +135,12 @@ def cmd_train(args) -> None:
     if args.resume and args.set:
         raise UserError("--set with --resume: a resumed run keeps the settings in its checkpoint")
     config = None if args.resume else _train_config(args)  # bad settings fail before any loading
+    from ngp_warp.distributed import join_data_parallel
+
+    args.data_parallel = join_data_parallel(args)  # under torchrun: this rank's device in args.device
     metrics = _train_and_report(scene, Path(args.out), args, config=config)
-    _print_metrics(metrics, Path(args.out))
+    if metrics is not None:  # None on ranks other than 0
+        _print_metrics(metrics, Path(args.out))
 
 
 def demo_config(device: str, steps: int | None, seconds: float | None, seed: int):
@@ -209,6 +220,8 @@ def _positive(kind):
 
 
 def _parser() -> argparse.ArgumentParser:
+    from ngp_warp.fit_many import add_fit_many_parser
+
     p = argparse.ArgumentParser(prog="ngp-warp", description="instant-NGP radiance fields on Warp kernels (CPU or CUDA)")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -233,6 +246,7 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("scene", help="NeRF-synthetic folder or folder with an instant-ngp transforms.json")
     t.add_argument("--out", required=True, help="output folder")
     t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    t.add_argument("--gpus", type=_positive(int), default=1, help="data-parallel ranks through torchrun (README)")
     training(t)
     common(t)
     t.set_defaults(func=cmd_train)
@@ -257,6 +271,8 @@ def _parser() -> argparse.ArgumentParser:
     common(r)
     r.set_defaults(func=cmd_render)
 
+    add_fit_many_parser(sub, training, common, str, _positive(int))
+
     b = sub.add_parser("bench", help="kernel throughput table")
     b.add_argument("--quick", action="store_true", help="small sizes only")
     common(b)
@@ -266,6 +282,10 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if getattr(args, "gpus", 1) > 1:  # run this command line as that many torchrun ranks
+        from ngp_warp.distributed import launch_ranks
+
+        return launch_ranks(args, sys.argv[1:] if argv is None else argv)
     from ngp_warp.checkpoint import CheckpointError
     from ngp_warp.data import DataError
 
