@@ -1,6 +1,21 @@
-"""Inference: whole images of a :class:`~ngp_warp.model.RadianceModel` from a camera, shared by
-evaluation, orbit videos and viewers. The weights rendered are the field's own: a trainer swaps
-its weight average in first (:meth:`ngp_warp.trainer.Trainer.render_image`)."""
+"""Inference: whole images of a :class:`~ngp_warp.model.RadianceModel` from a camera, the one
+fast path that evaluation, ``render`` videos, ``export`` and the viewer share. The weights
+rendered are the field's own: a trainer swaps its weight average in first
+(:meth:`ngp_warp.trainer.Trainer.render_image`).
+
+What makes it fast, next to a training render of the same rays:
+
+* no autograd at all (``torch.inference_mode``), the field in eval mode;
+* the occupancy grid skips empty space (the march's DDA), and each chunk's marched samples get
+  a density-only pass first; only the samples in front of the early-termination point
+  (transmittance ≥ the model's ``early_stop_eps``) go through the colour network
+  (:func:`ngp_warp.prune_samples`, the ``sigma_fn`` of :func:`ngp_warp.render_rays`);
+* the MLPs in the model's precision (bf16 on GPUs, :meth:`RadianceModel.precision`);
+* rays are generated once per image, the outputs are written into buffers allocated once, and
+  the chunks are as large as memory allows: their size adapts to the samples per ray of the
+  chunks already rendered (:class:`ChunkSizer`), so a view takes a few chunks, each with the
+  march's and the pruning's one host synchronisation.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +23,42 @@ import torch
 
 from ngp_warp.cameras import generate_rays
 from ngp_warp.model import RadianceModel
+
+BYTES_PER_SAMPLE = 512  # device memory one marched sample needs through march, density and pruning
+CPU_SAMPLE_BUDGET = 1 << 21  # marched samples per chunk on the CPU (a few hundred MB)
+MIN_CHUNK = 1 << 12  # rays
+
+
+class ChunkSizer:
+    """Rays per chunk from a budget of marched samples per chunk.
+
+    The first chunk holds ``budget / first_guess`` rays; after each chunk the next holds
+    ``budget / (1.5 × the most samples per ray seen so far)``, at least :data:`MIN_CHUNK`.
+
+    Args:
+        sample_budget: marched samples a chunk may hold.
+        first_guess: samples per ray assumed before any chunk was marched.
+    """
+
+    def __init__(self, sample_budget: int, first_guess: float = 64.0):
+        self.sample_budget = int(sample_budget)
+        self.samples_per_ray = float(first_guess) / 1.5
+
+    def next_size(self) -> int:
+        return max(MIN_CHUNK, int(self.sample_budget / (1.5 * max(self.samples_per_ray, 1.0))))
+
+    def observe(self, n_rays: int, n_marched: int) -> None:
+        if n_rays > 0:
+            self.samples_per_ray = max(self.samples_per_ray, n_marched / n_rays)
+
+
+def sample_budget(device: torch.device) -> int:
+    """Marched samples one chunk may hold on ``device``: on CUDA half the free memory over
+    :data:`BYTES_PER_SAMPLE`, on the CPU :data:`CPU_SAMPLE_BUDGET`."""
+    if device.type != "cuda":
+        return CPU_SAMPLE_BUDGET
+    free, _ = torch.cuda.mem_get_info(device)
+    return max(1 << 16, free // 2 // BYTES_PER_SAMPLE)
 
 
 def subpixel_offsets(supersample: int) -> list[tuple[float, float]]:
@@ -17,10 +68,33 @@ def subpixel_offsets(supersample: int) -> list[tuple[float, float]]:
     return [((a + 0.5) / k - 0.5, (b + 0.5) / k - 0.5) for b in range(k) for a in range(k)]
 
 
-@torch.no_grad()
+def _check_camera(c2w, intrinsics, distortion, width: int, height: int, spp: int, supersample: int,
+                  fisheye: bool) -> None:
+    for name, t, shape in (("c2w", c2w, (3, 4)), ("intrinsics", intrinsics, (4,))):
+        if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape:
+            raise ValueError(f"{name} must be a {list(shape)} tensor, got {getattr(t, 'shape', type(t).__name__)}")
+    if distortion is not None and (not isinstance(distortion, torch.Tensor) or tuple(distortion.shape) != (6,)):
+        raise ValueError(f"distortion must be None or a [6] tensor (k1 k2 k3 k4 p1 p2), "
+                         f"got {getattr(distortion, 'shape', type(distortion).__name__)}")
+    if fisheye and distortion is None:
+        raise ValueError("a fisheye view needs its distortion (zeros for the plain equidistant lens)")
+    for name, value in (("width", width), ("height", height), ("spp", spp), ("supersample", supersample)):
+        if not (isinstance(value, int) and value >= 1):
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
+def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor,
+                  stratified: bool) -> dict:
+    """One chunk of rays: march, prune by a density pass, shade the rest (see the module)."""
+    field = model.field
+    with model.precision():
+        return model.render(rays_o, rays_d, field, background=bg, stratified=stratified, sigma_fn=field.density)
+
+
+@torch.inference_mode()
 def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, *,
-                distortion: torch.Tensor | None = None, background: float = 1.0, chunk: int = 1 << 14,
-                spp: int = 1, supersample: int = 1) -> dict:
+                distortion: torch.Tensor | None = None, fisheye: bool = False, background: float = 1.0,
+                chunk: int | None = None, spp: int = 1, supersample: int = 1) -> dict:
     """Render one camera with the model's field in eval mode.
 
     Each pixel is the mean of ``supersample``² rays through its sub-pixel centres (the grid of
@@ -32,41 +106,54 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
         c2w: [3, 4] float32 camera-to-world (OpenGL convention).
         intrinsics: [4] float32 fx, fy, cx, cy (pixels).
         width, height: image size in pixels.
-        distortion: [4] float32 k1, k2, p1, p2 (OpenCV), or None for a pinhole.
+        distortion: [6] float32 k1, k2, k3, k4, p1, p2 (OpenCV), or None for a pinhole.
+        fisheye: the lens is OpenCV's fisheye (``distortion`` required).
         background: grey level blended behind the samples.
-        chunk: pixels per render call (memory is one chunk's, whatever ``supersample`` and ``spp``).
+        chunk: rays per chunk; None sizes chunks to the device's memory (:class:`ChunkSizer`).
+            The image does not depend on it.
 
     Returns:
-        dict with ``rgb`` [H, W, 3] float32 in [0, 1], ``depth`` and ``opacity`` [H, W] float32.
+        dict with ``rgb`` [H, W, 3] float32 in [0, 1], ``depth`` and ``opacity`` [H, W] float32
+        (depth is Σ w t: divide by opacity for the surface distance), and host ints
+        ``n_marched`` (samples marched) and ``n_shaded`` (samples through the colour network).
     """
-    if not (isinstance(spp, int) and spp >= 1):
-        raise ValueError(f"spp must be a positive integer, got {spp!r}")
-    model.field.eval()
+    _check_camera(c2w, intrinsics, distortion, width, height, spp, supersample, fisheye)
+    if chunk is not None and not (isinstance(chunk, int) and chunk >= 1):
+        raise ValueError(f"chunk must be None or a positive integer, got {chunk!r}")
+    if model.field.training:
+        model.field.eval()
     dev = model.device
-    ys, xs = torch.meshgrid(torch.arange(height, device=dev), torch.arange(width, device=dev), indexing="ij")
-    px, py = xs.reshape(-1), ys.reshape(-1)
-    n = px.numel()
-    c2w = c2w.to(dev).expand(n, 3, 4)
-    intr = intrinsics.to(dev).expand(n, 4)
-    dist = None if distortion is None else distortion.to(dev).expand(n, 4)
+    n = width * height
+    pixel = torch.arange(n, device=dev)
+    px, py = (pixel % width).float(), torch.div(pixel, width, rounding_mode="floor").float()
+    cams = c2w.to(dev, torch.float32).expand(n, 3, 4)
+    intr = intrinsics.to(dev, torch.float32).expand(n, 4)
+    dist = None if distortion is None else distortion.to(dev, torch.float32).expand(n, 6)
     bg = torch.full((3,), float(background), device=dev)
-    parts = {"rgb": [], "depth": [], "opacity": []}
+    rgb, depth, opacity = torch.zeros(n, 3, device=dev), torch.zeros(n, device=dev), torch.zeros(n, device=dev)
+    sizer = ChunkSizer(sample_budget(dev)) if chunk is None else None
     shifts = subpixel_offsets(supersample)
-    for lo in range(0, n, chunk):
-        hi = min(n, lo + chunk)
-        sums = dict.fromkeys(parts, 0.0)  # running sums: memory stays one render's whatever sub and spp
-        for dx, dy in shifts:
-            rays_o, rays_d = generate_rays(c2w[lo:hi], intr[lo:hi], None if dist is None else dist[lo:hi],
-                                           px[lo:hi] + dx, py[lo:hi] + dy)
-            for _ in range(spp):
-                with model.precision():
-                    out = model.render(rays_o, rays_d, model.field, background=bg, stratified=spp > 1)
-                for k in parts:
-                    sums[k] = sums[k] + out[k].float()
-        for k in parts:
-            parts[k].append(sums[k] / (len(shifts) * spp))
+    counts = {"n_marched": 0, "n_shaded": 0}
+    for dx, dy in shifts:
+        rays_o, rays_d = generate_rays(cams, intr, dist, px + dx, py + dy, fisheye=fisheye)
+        for _ in range(spp):
+            lo = 0
+            while lo < n:
+                hi = min(n, lo + (chunk or sizer.next_size()))
+                out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], bg, spp > 1)
+                rgb[lo:hi] += out["rgb"]
+                depth[lo:hi] += out["depth"]
+                opacity[lo:hi] += out["opacity"]
+                counts["n_marched"] += out["n_marched"]
+                counts["n_shaded"] += out["n_samples"]
+                if sizer is not None:
+                    sizer.observe(hi - lo, out["n_marched"])
+                lo = hi
+    scale = 1.0 / (len(shifts) * spp)
     return {
-        "rgb": torch.cat(parts["rgb"]).reshape(height, width, 3).clamp(0, 1),
-        "depth": torch.cat(parts["depth"]).reshape(height, width),
-        "opacity": torch.cat(parts["opacity"]).reshape(height, width),
+        "rgb": rgb.mul_(scale).clamp_(0, 1).reshape(height, width, 3),
+        "depth": depth.mul_(scale).reshape(height, width),
+        "opacity": opacity.mul_(scale).reshape(height, width),
+        **counts,
     }
+

@@ -1,0 +1,135 @@
+"""The inference renderer: equal to a plain render of the same rays (no pruning, one chunk),
+independent of the chunk size, lenses, input checks, and training after a render."""
+
+import copy
+
+import pytest
+import torch
+
+from ngp_warp.cameras import generate_rays
+from ngp_warp.config import TrainConfig
+from ngp_warp.data import load_scene
+from ngp_warp.field import FieldConfig
+from ngp_warp.model import RadianceModel
+from ngp_warp.renderer import ChunkSizer, render_view
+from ngp_warp.scene import write_demo_scene
+from ngp_warp.trainer import Trainer
+
+W, H = 20, 16
+
+
+@pytest.fixture(scope="module")
+def trainer(tmp_path_factory):
+    path = write_demo_scene(tmp_path_factory.mktemp("renderer") / "demo", width=24, height=24, n_train=12,
+                            n_test=1, supersample=1)
+    config = TrainConfig(steps=60, target_samples=1 << 12, grid_resolution=32, steps_per_diagonal=256,
+                         field=FieldConfig(n_levels=8, log2_hashmap_size=14, finest_resolution=128.0, hidden=32))
+    t = Trainer(load_scene(path), config, device="cpu")
+    t.train(show_progress=False)
+    return t
+
+
+def camera(trainer):
+    split = trainer.scene.test
+    intr = split.intrinsics[0] * torch.tensor([W / split.width, H / split.height, W / split.width, H / split.height])
+    return split.c2w[0], intr
+
+
+def plain_render(model, rays_o, rays_d, background: float) -> dict:
+    """Every marched sample through the whole field, no pruning, one call."""
+    with torch.no_grad():
+        return model.render(rays_o, rays_d, model.field, background=torch.full((3,), background))
+
+
+def pixel_rays(c2w, intr, distortion=None, fisheye=False):
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    n = W * H
+    dist = None if distortion is None else distortion.expand(n, 6)
+    return generate_rays(c2w.expand(n, 3, 4), intr.expand(n, 4), dist, xs.reshape(-1).float(),
+                         ys.reshape(-1).float(), fisheye=fisheye)
+
+
+def assert_same_image(out, want):
+    torch.testing.assert_close(out["rgb"].reshape(-1, 3), want["rgb"].clamp(0, 1), rtol=0, atol=2e-5)
+    torch.testing.assert_close(out["opacity"].reshape(-1), want["opacity"], rtol=0, atol=2e-5)
+    torch.testing.assert_close(out["depth"].reshape(-1), want["depth"], rtol=1e-5, atol=1e-4)
+
+
+def denser_field(field):
+    """A copy of ``field`` whose log-density grows by the sum of its last hidden activations (≥ 0)."""
+    dense = copy.deepcopy(field)
+    with torch.no_grad():
+        dense.density_mlp[-1].weight[0] += 5.0
+    return dense
+
+
+@pytest.mark.parametrize("dense", [False, True])
+def test_render_view_equals_a_plain_render_and_shades_fewer_samples(trainer, dense):
+    c2w, intr = camera(trainer)
+    field = denser_field(trainer.field) if dense else trainer.field
+    model = RadianceModel(field, trainer.grid, trainer.model.march)
+    out = render_view(model, c2w, intr, W, H, background=0.25)
+    want = plain_render(model, *pixel_rays(c2w, intr), 0.25)
+    assert float(want["opacity"].max()) > 0.5  # not an empty view
+    assert_same_image(out, want)
+    assert out["n_marched"] == want["n_samples"]
+    assert 0 < out["n_shaded"] <= out["n_marched"]
+    if dense:  # opaque rays end early: their samples behind it skip the colour pass (after 60
+        assert out["n_shaded"] < 0.8 * out["n_marched"]  # steps hardly any ray is that opaque)
+
+
+@pytest.mark.parametrize("chunk", [1, 37, 4096])
+def test_chunks_do_not_change_the_image(trainer, chunk):
+    c2w, intr = camera(trainer)
+    whole = render_view(trainer.model, c2w, intr, W, H)
+    chunked = render_view(trainer.model, c2w, intr, W, H, chunk=chunk)
+    for key in ("rgb", "depth", "opacity"):
+        torch.testing.assert_close(chunked[key], whole[key], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("fisheye", [False, True])
+def test_lenses_render_their_own_rays(trainer, fisheye):
+    c2w, intr = camera(trainer)
+    distortion = torch.tensor([0.05, -0.02, 0.01, 0.004, 0.0, 0.0] if fisheye else [-0.1, 0.02, 0.0, 0.0, 1e-3, -2e-3])
+    out = render_view(trainer.model, c2w, intr, W, H, distortion=distortion, fisheye=fisheye, background=0.5)
+    assert_same_image(out, plain_render(trainer.model, *pixel_rays(c2w, intr, distortion, fisheye), 0.5))
+    pinhole = render_view(trainer.model, c2w, intr, W, H, background=0.5)
+    assert (out["rgb"] - pinhole["rgb"]).abs().max() > 1e-3  # the lens changed the picture (well past the tolerance)
+
+
+def test_trainer_renders_distorted_test_views(trainer):
+    split = trainer.scene.test
+    out = trainer.render_image(split.c2w[0], split.intrinsics[0], 8, 6, distortion=torch.zeros(6), fisheye=True)
+    assert out["rgb"].shape == (6, 8, 3)
+
+
+def test_training_goes_on_after_a_render(trainer):
+    c2w, intr = camera(trainer)
+    render_view(trainer.model, c2w, intr, W, H)
+    before = trainer.field.encoding.params.detach().clone()
+    trainer.step()
+    trainer.flush()
+    assert not torch.equal(before, trainer.field.encoding.params.detach())
+    assert trainer.field.training
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(width=0), "width"), (dict(spp=0), "spp"), (dict(chunk=0), "chunk"),
+    (dict(distortion=torch.zeros(4)), "k1 k2 k3 k4"), (dict(fisheye=True), "fisheye"),
+])
+def test_bad_arguments_are_refused(trainer, kwargs, message):
+    c2w, intr = camera(trainer)
+    args = dict(width=W, height=H) | kwargs
+    with pytest.raises(ValueError, match=message):
+        render_view(trainer.model, c2w, intr, args.pop("width"), args.pop("height"), **args)
+
+
+def test_chunk_sizer_follows_the_densest_chunk():
+    sizer = ChunkSizer(1 << 24, first_guess=64.0)
+    assert sizer.next_size() == (1 << 24) // 64
+    sizer.observe(1000, 8000)  # 8 samples per ray: below the guess, the guess stays
+    assert sizer.next_size() == (1 << 24) // 64
+    sizer.observe(1000, 256_000)
+    assert sizer.next_size() == int((1 << 24) / (1.5 * 256))
+    sizer.observe(10, 10**9)
+    assert sizer.next_size() == 1 << 12
