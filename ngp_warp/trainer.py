@@ -212,14 +212,15 @@ class Trainer:
 
     # -- inference -------------------------------------------------------------------------
     def render_image(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
-                     distortion: torch.Tensor | None = None, background: float = 1.0, chunk: int = 1 << 14,
-                     spp: int = 1) -> dict:
+                     distortion: torch.Tensor | None = None, background: float = 1.0, chunk: int | None = None,
+                     spp: int = 1, fisheye: bool = False) -> dict:
         """:func:`ngp_warp.renderer.render_view` of one camera with the weight average (when
-        on) and the training pixels' sub-pixel grid: [3, 4] c2w, [4] fx fy cx cy, optional [4]
-        k1 k2 p1 p2 distortion → rgb [H, W, 3], depth/opacity [H, W]. ``spp`` > 1 averages
-        that many renders with jittered sample offsets along each ray."""
+        on) and the training pixels' sub-pixel grid: [3, 4] c2w, [4] fx fy cx cy, optional [6]
+        k1 k2 k3 k4 p1 p2 distortion (``fisheye``: OpenCV's fisheye lens) → rgb [H, W, 3],
+        depth/opacity [H, W]. ``spp`` > 1 averages that many renders with jittered sample
+        offsets along each ray; ``chunk`` None sizes the ray chunks to memory."""
         with self.weights.averaged_in_field():
-            return render_view(self.model, c2w, intrinsics, width, height, distortion=distortion,
+            return render_view(self.model, c2w, intrinsics, width, height, distortion=distortion, fisheye=fisheye,
                                background=background, chunk=chunk, spp=spp, supersample=self.config.supersample)
 
     # -- state -----------------------------------------------------------------------------
