@@ -13,6 +13,7 @@ import torch
 from tqdm import tqdm
 
 from ngp_warp.atomic import atomic_dir, atomic_write_text
+from ngp_warp.lpips import lpips_or_reason, lpips_summary
 from ngp_warp.metrics import SSIM_WINDOW, psnr, ssim
 from ngp_warp.trainer import Trainer
 
@@ -65,7 +66,8 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
             # SSIM needs an 11-pixel window: images smaller than that get none (null in the JSON).
             p = psnr(out["rgb"], gt)
             s = ssim(out["rgb"], gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
-            per_image.append({"image": name, "psnr": p, "ssim": s})
+            lpips, lpips_note = lpips_or_reason(out["rgb"], gt)
+            per_image.append({"image": name, "psnr": p, "ssim": s, "lpips": lpips})
             iio.imwrite(renders / f"{stem}.png", to_uint8(out["rgb"]))
             iio.imwrite(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
             bar.set_postfix(psnr=f"{p:.2f}", refresh=False)
@@ -74,6 +76,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     metrics = {
         "psnr": float(np.mean([m["psnr"] for m in per_image])),
         "ssim": None if per_image[0]["ssim"] is None else float(np.mean([m["ssim"] for m in per_image])),
+        **lpips_summary([m["lpips"] for m in per_image], lpips_note),
         "train_seconds": trainer.train_seconds,
         "steps": trainer.step_count,
         "device": str(trainer.device),
