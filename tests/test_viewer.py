@@ -1,0 +1,196 @@
+"""The viser viewer: camera conventions, live training with pause, and a real browser (headless
+Chromium driven over the DevTools protocol) that shows the scene and follows the camera."""
+
+import json
+import math
+import shutil
+import socket
+import subprocess
+import threading
+import time
+import urllib.request
+from argparse import Namespace
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from ngp_warp.camera_path import matrix_from_quat
+from ngp_warp.checkpoint import save_checkpoint
+from ngp_warp.cli import main
+from ngp_warp.config import TrainConfig
+from ngp_warp.data import load_scene
+from ngp_warp.field import FieldConfig
+from ngp_warp.scene import write_demo_scene
+from ngp_warp.trainer import Trainer
+
+viser = pytest.importorskip("viser")
+from ngp_warp.viewer import Viewer, c2w_from_viser, load_target, to_image, view_size, viser_from_c2w  # noqa: E402
+
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+def tiny_config(steps: int) -> TrainConfig:
+    return TrainConfig(steps=steps, target_samples=1 << 12, grid_resolution=32, steps_per_diagonal=256,
+                       field=FieldConfig(n_levels=8, log2_hashmap_size=14, finest_resolution=128.0, hidden=32))
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return write_demo_scene(tmp_path_factory.mktemp("viewer") / "scene", width=32, height=32, n_train=16,
+                            n_test=1, supersample=1)
+
+
+def test_cameras_round_trip_through_viser_conventions():
+    q = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.2, 0.8], dtype=torch.float64), dim=0)
+    c2w = torch.cat([matrix_from_quat(q), torch.tensor([[1.0], [-2.0], [0.5]], dtype=torch.float64)], 1).float()
+    wxyz, position = viser_from_c2w(c2w)
+    torch.testing.assert_close(c2w_from_viser(wxyz, position), c2w, rtol=0, atol=1e-6)
+    w, x, y, z = wxyz  # viser's camera looks down its +z, the OpenGL camera down its -z
+    forward = matrix_from_quat(torch.tensor([x, y, z, w]))[:, 2]
+    torch.testing.assert_close(forward.float(), -c2w[:, 2], rtol=0, atol=1e-6)
+
+
+def test_frame_sizes_and_images():
+    assert view_size(2.0, 100) == (100, 50) and view_size(0.5, 100) == (50, 100) and view_size(0.0, 64) == (64, 64)
+    depth, opacity = torch.tensor([[1.0, 2.0], [4.0, 0.0]]), torch.tensor([[1.0, 1.0], [1.0, 0.0]])
+    out = {"rgb": torch.rand(2, 2, 3), "depth": depth, "opacity": opacity}
+    rgb, grey, alpha = (to_image(out, k) for k in ("rgb", "depth", "opacity"))
+    assert rgb.shape == grey.shape == alpha.shape == (2, 2, 3) and rgb.dtype == np.uint8
+    assert grey[0, 0, 0] > grey[0, 1, 0] > grey[1, 0, 0] and grey[1, 1, 0] == 0  # near bright, empty black
+    assert alpha[0, 0, 0] == 255 and alpha[1, 1, 0] == 0
+
+
+def test_live_training_steps_until_paused(scene_dir):
+    trainer = Trainer(load_scene(scene_dir), tiny_config(1000), device="cpu")
+    viewer = Viewer(trainer, "127.0.0.1", 0, resolution=32, moving_resolution=16, live=True)
+    try:
+        for _ in range(12):
+            assert viewer.tick()
+        assert trainer.step_count == 12 and viewer.stats["step"] == 10
+        assert "training" in viewer.status.content and "step 10" in viewer.status.content
+        viewer.paused.value = True
+        assert not viewer.tick() and trainer.step_count == 12  # no client, nothing to render
+    finally:
+        viewer.close()
+
+
+def test_view_of_a_missing_folder_is_one_line(tmp_path, capsys):
+    assert main(["view", str(tmp_path / "nope"), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("ngp-warp: error: ") and "no such run or scene folder" in err[-1]
+
+
+# ---- a real browser ------------------------------------------------------------------------------
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class DevTools:
+    """One page of a headless Chromium, driven through the Chrome DevTools protocol."""
+
+    def __init__(self, url: str, profile: Path):
+        from websockets.sync.client import connect
+
+        port = free_port()
+        self.process = subprocess.Popen(
+            [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+             f"--user-data-dir={profile}", f"--remote-debugging-port={port}", "--window-size=960,640", url],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=2) as reply:
+                    pages = [t for t in json.load(reply) if t["type"] == "page"]
+                if pages:
+                    break
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                raise TimeoutError("Chromium's DevTools did not come up")
+            time.sleep(0.2)
+        self.socket = connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
+        self.next_id = 0
+
+    def call(self, method: str, **params) -> dict:
+        self.next_id += 1
+        self.socket.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        while True:
+            reply = json.loads(self.socket.recv(timeout=30))
+            if reply.get("id") == self.next_id:
+                return reply["result"]
+
+    def screenshot(self) -> np.ndarray:
+        import base64
+
+        png = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+        return iio.imread(png)[..., :3].astype(np.float32)
+
+    def close(self) -> None:
+        self.socket.close()
+        self.process.terminate()
+        self.process.wait(10)
+
+
+def wait_for(condition, what: str, seconds: float = 60.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not condition():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"waited {seconds} s for {what}")
+        time.sleep(0.1)
+
+
+def rested_frames(viewer: Viewer) -> int:
+    """Frames sent to the one browser tab when its current camera has its full-resolution frame, else -1."""
+    views = list(viewer.clients.values())
+    return views[0].frames if len(views) == 1 and views[0].full_sent else -1
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's chromium (/usr/bin/chromium)")
+def test_browser_shows_the_scene_and_follows_the_camera(scene_dir, tmp_path):
+    trainer = Trainer(load_scene(scene_dir), tiny_config(60), device="cpu")
+    trainer.train(show_progress=False)
+    run = tmp_path / "run"
+    run.mkdir()
+    save_checkpoint(trainer, run / "checkpoint.pt", scene_dir, 1)
+    loaded, live = load_target(Namespace(target=str(run), scene=None), "cpu")
+    assert not live and loaded.step_count == 60
+    viewer = Viewer(loaded, "127.0.0.1", 0, resolution=160, moving_resolution=40, live=False)
+    stop = threading.Event()
+    server = threading.Thread(target=viewer.serve, args=(stop,), daemon=True)
+    server.start()
+    browser = None
+    try:
+        browser = DevTools(viewer.url, tmp_path / "profile")
+        wait_for(lambda: rested_frames(viewer) > 0, "the first full frame")
+        assert browser.call("Runtime.evaluate", expression="document.readyState")["result"]["value"] == "complete"
+        assert browser.call("Runtime.evaluate", expression="document.querySelectorAll('canvas').length",
+                            returnByValue=True)["result"]["value"] >= 1
+        time.sleep(1.5)  # the browser draws the frame
+        first = browser.screenshot()
+        centre = first[160:480, 160:560]  # the middle of the page: the scene, clear of the panels
+        assert centre.std() > 8.0, centre.std()  # not a blank canvas
+
+        sent = rested_frames(viewer)
+        client = next(iter(viewer.clients.values())).handle
+        look_at = (loaded.scene.aabb[:3] + loaded.scene.aabb[3:]) / 2
+        eye = torch.tensor(client.camera.position, dtype=torch.float32) - look_at
+        turn = torch.tensor([[math.cos(1.2), -math.sin(1.2), 0.0], [math.sin(1.2), math.cos(1.2), 0.0], [0, 0, 1]])
+        client.camera.position = (look_at + 0.7 * turn @ eye).numpy()  # nearer, and around the up (+z) axis
+        wait_for(lambda: rested_frames(viewer) > sent, "the frame of the moved camera")
+        time.sleep(1.5)
+        moved = browser.screenshot()[160:480, 160:560]
+        assert np.abs(moved - centre).mean() > 4.0, np.abs(moved - centre).mean()
+    finally:
+        if browser is not None:
+            browser.close()
+        stop.set()
+        server.join(30)
+        viewer.close()
+        shutil.rmtree(tmp_path / "profile", ignore_errors=True)
