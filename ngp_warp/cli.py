@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import os
+import math
 import sys
 from pathlib import Path
 
@@ -32,7 +32,7 @@ def _writable_dir(path: Path) -> Path:
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
-        probe = path / f".ngp-warp-write-test-{os.getpid()}"  # data-parallel ranks probe at once
+        probe = path / ".ngp-warp-write-test"
         probe.write_text("")
         probe.unlink()
     except OSError as e:
@@ -61,43 +61,44 @@ def _train_config(args):
 
 
 def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
-    """Train (or resume), checkpoint, evaluate and render into ``out``."""
+    """Train (or resume), checkpoint, evaluate and render into ``out`` (a folder of one run:
+    :class:`ngp_warp.run_folder.RunFolder`)."""
     from ngp_warp.data import load_scene
+    from ngp_warp.run_folder import RunFolder
 
     device = _device(args.device)
     out = Path(out)
     resume = getattr(args, "resume", False)
-    scene = None if resume else load_scene(scene_path, downscale=args.downscale)
+    folder = RunFolder(out, resume, args.overwrite, ("--resume" if hasattr(args, "resume") else None, "--overwrite"))
+    scene = None if resume else load_scene(scene_path, downscale=args.downscale or 1)
     created = not out.exists()
     out = _writable_dir(out)
     try:
-        return _run(scene, scene_path, out, args, device, config, resume)
+        return _run(scene, scene_path, folder, args, device, config, resume)
     except BaseException:
         if created and not any(out.iterdir()):
             out.rmdir()  # leave nothing behind for a run that wrote nothing
         raise
 
 
-def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: bool) -> dict:
+def _run(scene, scene_path: Path, folder, args, device: str, config, resume: bool) -> dict:
     from ngp_warp.checkpoint import load_trainer, save_checkpoint
     from ngp_warp.evaluate import evaluate, render_orbit
     from ngp_warp.trainer import Trainer
 
+    out = folder.path
     ckpt = out / CHECKPOINT
-    downscale = args.downscale
+    downscale = args.downscale or 1
     if resume:
-        trainer, record = load_trainer(ckpt, device=device)
+        trainer, record = load_trainer(ckpt, device=device, scene_path=scene_path)  # the same views
+        if args.downscale not in (None, record["downscale"]):
+            raise UserError(f"--downscale {args.downscale} with --resume: {out} trained at --downscale "
+                            f"{record['downscale']} (a resumed run keeps it)")
         trainer.config.steps, trainer.config.seconds = args.steps, args.seconds
-        scene_path, downscale = Path(record["path"]), record["downscale"]  # what the run trained on
+        downscale = record["downscale"]
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
         trainer = Trainer(scene, config, device=device)
-    if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
-        from ngp_warp.distributed import is_main_rank, make_data_parallel
-
-        make_data_parallel(trainer)
-        if not is_main_rank():
-            return trainer.train(show_progress=False)
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
           f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "
@@ -107,14 +108,12 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
     if scene.test_is_heldout:
         print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
               file=sys.stderr)
-    try:
-        trainer.train(show_progress=not args.quiet)
-    except KeyboardInterrupt:
-        save_checkpoint(trainer, ckpt, scene_path, downscale)
-        print(f"ngp-warp: interrupted at step {trainer.step_count}; checkpoint saved to {ckpt} "
-              f"(continue with --resume)", file=sys.stderr)
-        raise
-    save_checkpoint(trainer, ckpt, scene_path, downscale)
+
+    def save() -> None:  # an overwritten run's outputs go just before the first (good) write
+        save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim)
+
+    _train(trainer, save, folder, args)
+    save()
     metrics = evaluate(trainer, out, show_progress=not args.quiet)
     if not args.no_video:
         video = render_orbit(trainer, out / "orbit.mp4", n_frames=args.frames, show_progress=not args.quiet)
@@ -122,8 +121,31 @@ def _run(scene, scene_path: Path, out: Path, args, device: str, config, resume: 
     return metrics
 
 
+def _train(trainer, save, folder, args) -> None:
+    """Train, saving every ``--checkpoint-every`` seconds and on Ctrl-C or SIGTERM (then
+    re-raised); a diverged run stops with one line, its last good checkpoint kept."""
+    from ngp_warp.run_folder import Terminated
+    from ngp_warp.trainer import TrainingDiverged
+
+    ckpt = folder.path / CHECKPOINT
+    try:
+        trainer.train(show_progress=not args.quiet, checkpoint=save, checkpoint_every=args.checkpoint_every)
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (main's sigterm_as_interrupt)
+        save()
+        how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        resume = "--resume" if hasattr(args, "resume") else f"ngp-warp train {folder.path / 'scene'} --resume"
+        print(f"ngp-warp: {how} at step {trainer.step_count}; checkpoint saved to {ckpt} "
+              f"(continue with {resume})", file=sys.stderr)
+        raise
+    except TrainingDiverged as e:
+        kept = ("nothing was saved" if not ckpt.exists() else f"{ckpt} keeps the last good checkpoint"
+                if folder.claimed else f"{folder.path} still holds the previous run")
+        raise UserError(f"{e}; {kept}") from None
+
+
 def _print_metrics(metrics: dict, out: Path) -> None:
     ssim = "n/a (images under 11 px)" if metrics["ssim"] is None else f"{metrics['ssim']:.4f}"
+    psnr = "n/a (not finite)" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB"
     print(f"{metrics['test_split']}: PSNR {metrics['psnr']:.2f} dB  SSIM {ssim}  "
           f"({metrics['n_test_images']} images, {metrics['steps']} steps, "
           f"{metrics['train_seconds']:.1f} s training on {metrics['device']})")
@@ -134,13 +156,11 @@ def cmd_train(args) -> None:
     scene = Path(args.scene)
     if args.resume and args.set:
         raise UserError("--set with --resume: a resumed run keeps the settings in its checkpoint")
+    if args.resume and args.overwrite:
+        raise UserError("--resume with --overwrite: continue the run in --out, or replace it, not both")
     config = None if args.resume else _train_config(args)  # bad settings fail before any loading
-    from ngp_warp.distributed import join_data_parallel
-
-    args.data_parallel = join_data_parallel(args)  # under torchrun: this rank's device in args.device
     metrics = _train_and_report(scene, Path(args.out), args, config=config)
-    if metrics is not None:  # None on ranks other than 0
-        _print_metrics(metrics, Path(args.out))
+    _print_metrics(metrics, Path(args.out))
 
 
 def demo_config(device: str, steps: int | None, seconds: float | None, seed: int):
@@ -161,24 +181,31 @@ def demo_config(device: str, steps: int | None, seconds: float | None, seed: int
 
 
 def cmd_demo(args) -> None:
+    from ngp_warp.run_folder import RunFolder
     from ngp_warp.scene import write_demo_scene
 
+    # every option is checked before the scene is generated
+    config = _with_settings(demo_config(_device(args.device), args.steps, args.seconds, args.seed), args)
+    RunFolder(Path(args.out), overwrite=args.overwrite, flags=(None, "--overwrite"))
     out = _writable_dir(Path(args.out))
     scene_dir = out / "scene"
     if not (scene_dir / "transforms_train.json").exists():
         print(f"generating the demo scene in {scene_dir}", file=sys.stderr)
         write_demo_scene(scene_dir, seed=args.seed)
-    config = _with_settings(demo_config(_device(args.device), args.steps, args.seconds, args.seed), args)
     metrics = _train_and_report(scene_dir, out, args, config=config)
     _print_metrics(metrics, out)
 
 
 def cmd_eval(args) -> None:
+    from ngp_warp.atomic import remove_stale_partials
     from ngp_warp.checkpoint import load_trainer
     from ngp_warp.evaluate import evaluate
+    from ngp_warp.run_folder import check_output_names
 
+    check_output_names(Path(args.dir))  # e.g. renders/ that is a file: refused before loading
     trainer, _ = load_trainer(Path(args.dir) / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
     out = _writable_dir(Path(args.dir))
+    remove_stale_partials(out)  # left by an evaluation that was killed
     _print_metrics(evaluate(trainer, out, show_progress=not args.quiet), out)
 
 
@@ -211,7 +238,7 @@ def _positive(kind):
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}") from None
-        if not value > 0:
+        if not (value > 0 and math.isfinite(value)):
             raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
         return value
 
@@ -219,9 +246,23 @@ def _positive(kind):
     return parse
 
 
-def _parser() -> argparse.ArgumentParser:
-    from ngp_warp.fit_many import add_fit_many_parser
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 2^63), got {text!r}")
+    return value
 
+
+def _folder(text: str) -> str:
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a folder, got an empty name")
+    return text
+
+
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ngp-warp", description="instant-NGP radiance fields on Warp kernels (CPU or CUDA)")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -233,45 +274,45 @@ def _parser() -> argparse.ArgumentParser:
         budget = sp.add_mutually_exclusive_group()
         budget.add_argument("--steps", type=_positive(int), help="training steps")
         budget.add_argument("--seconds", type=_positive(float), help="training wall-clock budget in seconds")
-        sp.add_argument("--downscale", type=_positive(int), default=1, help="shrink images by this integer factor")
-        sp.add_argument("--seed", type=int, default=0)
+        sp.add_argument("--downscale", type=_positive(int), help="shrink images by this integer factor (default 1)")
+        sp.add_argument("--seed", type=_seed, default=0)
         sp.add_argument("--target-samples", type=_positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
                              "(repeatable; see ngp_warp.config.TrainConfig)")
         sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
         sp.add_argument("--frames", type=_positive(int), default=60, help="orbit video frames")
+        sp.add_argument("--overwrite", action="store_true", help="replace the run already in the output folder")
+        sp.add_argument("--checkpoint-every", type=_positive(float), default=300.0, metavar="SECONDS",
+                        help="save a checkpoint this often while training (default 300; also on Ctrl-C and SIGTERM)")
 
     t = sub.add_parser("train", help="train on a scene folder, then evaluate and render")
     t.add_argument("scene", help="NeRF-synthetic folder or folder with an instant-ngp transforms.json")
-    t.add_argument("--out", required=True, help="output folder")
+    t.add_argument("--out", type=_folder, required=True, help="output folder")
     t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    t.add_argument("--gpus", type=_positive(int), default=1, help="data-parallel ranks through torchrun (README)")
     training(t)
     common(t)
     t.set_defaults(func=cmd_train)
 
     d = sub.add_parser("demo", help="generate the built-in procedural scene, train and evaluate on it")
-    d.add_argument("--out", default="ngp-warp-demo", help="output folder (default ./ngp-warp-demo)")
+    d.add_argument("--out", type=_folder, default="ngp-warp-demo", help="output folder (default ./ngp-warp-demo)")
     training(d)
     common(d)
     d.set_defaults(func=cmd_demo)
 
     e = sub.add_parser("eval", help="evaluate a trained output folder on its test split")
-    e.add_argument("dir")
+    e.add_argument("dir", type=_folder)
     e.add_argument("--scene", help="scene folder, if it moved since training")
     common(e)
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="render an orbit video from a trained output folder")
-    r.add_argument("dir")
+    r.add_argument("dir", type=_folder)
     r.add_argument("--video", default="orbit.mp4", help="video path (.mp4, or .gif; relative to DIR)")
     r.add_argument("--frames", type=_positive(int), default=60)
     r.add_argument("--scene", help="scene folder, if it moved since training")
     common(r)
     r.set_defaults(func=cmd_render)
-
-    add_fit_many_parser(sub, training, common, str, _positive(int))
 
     b = sub.add_parser("bench", help="kernel throughput table")
     b.add_argument("--quick", action="store_true", help="small sizes only")
@@ -282,18 +323,20 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    if getattr(args, "gpus", 1) > 1:  # run this command line as that many torchrun ranks
-        from ngp_warp.distributed import launch_ranks
-
-        return launch_ranks(args, sys.argv[1:] if argv is None else argv)
     from ngp_warp.checkpoint import CheckpointError
     from ngp_warp.data import DataError
+    from ngp_warp.memory_estimate import SettingsTooLarge
+    from ngp_warp.run_folder import SIGTERM_EXIT, RunFolderError, Terminated, sigterm_as_interrupt
 
     try:
-        args.func(args)
-    except (UserError, DataError, CheckpointError) as e:
+        with sigterm_as_interrupt():
+            args.func(args)
+    except (UserError, DataError, CheckpointError, RunFolderError, SettingsTooLarge) as e:
         print(f"ngp-warp: error: {e}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("ngp-warp: terminated (SIGTERM)", file=sys.stderr)
+        return SIGTERM_EXIT
     except KeyboardInterrupt:
         print("ngp-warp: interrupted", file=sys.stderr)
         return 130
