@@ -94,7 +94,7 @@ def test_resume_keeps_the_recorded_downscale(scene, tmp_path):
     out = tmp_path / "run"
     common = ["--no-video", *FAST]
     assert main(["train", str(scene), "--out", str(out), "--steps", "3", "--downscale", "2", *common]) == 0
-    assert main(["train", str(tmp_path / "elsewhere"), "--out", str(out), "--resume", "--steps", "2", *common]) == 0
+    assert main(["train", str(scene), "--out", str(out), "--resume", "--steps", "2", *common]) == 0
     state = read_checkpoint(out / "checkpoint.pt")
     assert state["scene"]["downscale"] == 2 and state["step"] == 5
     assert state["scene"]["path"] == str(scene.resolve())
