@@ -2,7 +2,7 @@
 
 Each browser tab sends its camera; the main thread renders it with
 :func:`ngp_warp.renderer.render_view` (through :meth:`Trainer.render_image`) and sends the
-frame back as the scene's background image: at a lower resolution while the camera moves, at
+frame back as the scene's background image (one ray per pixel): at a lower resolution while the camera moves, at
 full resolution once it has rested for :data:`REST_SECONDS`. The training cameras are drawn as
 frustums. Given a scene folder instead of a trained run, the viewer trains it live between
 frames and shows the step, loss and PSNR, with pause and resume.
@@ -166,7 +166,7 @@ class Viewer:
             return
         width, height = view_size(aspect, longest)
         out = self.trainer.render_image(c2w_from_viser(wxyz, position), intrinsics_for(fov, width, height),
-                                        width, height, background=1.0)
+                                        width, height, background=1.0, supersample=1)
         view.handle.scene.set_background_image(to_image(out, self.output.value), format="jpeg", jpeg_quality=85)
         view.sent_at, view.frames = time.monotonic(), view.frames + 1
 

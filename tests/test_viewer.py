@@ -1,22 +1,17 @@
 """The viser viewer: camera conventions, live training with pause, and a real browser (headless
 Chromium driven over the DevTools protocol) that shows the scene and follows the camera."""
 
-import json
 import math
 import shutil
-import socket
-import subprocess
 import threading
 import time
-import urllib.request
 from argparse import Namespace
-from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
 
+from browser import CHROMIUM, DevTools, wait_for
 from ngp_warp.camera_path import matrix_from_quat
 from ngp_warp.checkpoint import save_checkpoint
 from ngp_warp.cli import main
@@ -28,8 +23,6 @@ from ngp_warp.trainer import Trainer
 
 viser = pytest.importorskip("viser")
 from ngp_warp.viewer import Viewer, c2w_from_viser, load_target, to_image, view_size, viser_from_c2w  # noqa: E402
-
-CHROMIUM = Path("/usr/bin/chromium")
 
 
 def tiny_config(steps: int) -> TrainConfig:
@@ -77,6 +70,14 @@ def test_live_training_steps_until_paused(scene_dir):
         viewer.close()
 
 
+def test_a_scene_folder_is_trained_live(scene_dir):
+    args = Namespace(target=str(scene_dir), scene=None, steps=7, seconds=None, seed=0, target_samples=4096,
+                     set=["grid_resolution=32"], downscale=2)
+    trainer, live = load_target(args, "cpu")
+    assert live and trainer.step_count == 0 and trainer.config.budget() == (7, None)
+    assert trainer.scene.train.width == 16 and trainer.config.grid_resolution == 32
+
+
 def test_view_of_a_missing_folder_is_one_line(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope"), "--device", "cpu"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -84,67 +85,6 @@ def test_view_of_a_missing_folder_is_one_line(tmp_path, capsys):
 
 
 # ---- a real browser ------------------------------------------------------------------------------
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class DevTools:
-    """One page of a headless Chromium, driven through the Chrome DevTools protocol."""
-
-    def __init__(self, url: str, profile: Path):
-        from websockets.sync.client import connect
-
-        port = free_port()
-        self.process = subprocess.Popen(
-            [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={profile}", f"--remote-debugging-port={port}", "--window-size=960,640", url],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=2) as reply:
-                    pages = [t for t in json.load(reply) if t["type"] == "page"]
-                if pages:
-                    break
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                raise TimeoutError("Chromium's DevTools did not come up")
-            time.sleep(0.2)
-        self.socket = connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
-        self.next_id = 0
-
-    def call(self, method: str, **params) -> dict:
-        self.next_id += 1
-        self.socket.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
-        while True:
-            reply = json.loads(self.socket.recv(timeout=30))
-            if reply.get("id") == self.next_id:
-                return reply["result"]
-
-    def screenshot(self) -> np.ndarray:
-        import base64
-
-        png = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
-        return iio.imread(png)[..., :3].astype(np.float32)
-
-    def close(self) -> None:
-        self.socket.close()
-        self.process.terminate()
-        self.process.wait(10)
-
-
-def wait_for(condition, what: str, seconds: float = 60.0) -> None:
-    deadline = time.monotonic() + seconds
-    while not condition():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"waited {seconds} s for {what}")
-        time.sleep(0.1)
-
 
 def rested_frames(viewer: Viewer) -> int:
     """Frames sent to the one browser tab when its current camera has its full-resolution frame, else -1."""
