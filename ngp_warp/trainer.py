@@ -213,15 +213,17 @@ class Trainer:
     # -- inference -------------------------------------------------------------------------
     def render_image(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                      distortion: torch.Tensor | None = None, background: float = 1.0, chunk: int | None = None,
-                     spp: int = 1, fisheye: bool = False) -> dict:
+                     spp: int = 1, fisheye: bool = False, supersample: int | None = None) -> dict:
         """:func:`ngp_warp.renderer.render_view` of one camera with the weight average (when
         on) and the training pixels' sub-pixel grid: [3, 4] c2w, [4] fx fy cx cy, optional [6]
         k1 k2 k3 k4 p1 p2 distortion (``fisheye``: OpenCV's fisheye lens) → rgb [H, W, 3],
         depth/opacity [H, W]. ``spp`` > 1 averages that many renders with jittered sample
-        offsets along each ray; ``chunk`` None sizes the ray chunks to memory."""
+        offsets along each ray; ``chunk`` None sizes the ray chunks to memory; ``supersample``
+        overrides the sub-pixel grid (1: one ray per pixel, for previews)."""
         with self.weights.averaged_in_field():
             return render_view(self.model, c2w, intrinsics, width, height, distortion=distortion, fisheye=fisheye,
-                               background=background, chunk=chunk, spp=spp, supersample=self.config.supersample)
+                               background=background, chunk=chunk, spp=spp,
+                               supersample=supersample or self.config.supersample)
 
     # -- state -----------------------------------------------------------------------------
     def state_dict(self) -> dict:
