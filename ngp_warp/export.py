@@ -297,7 +297,8 @@ def training_points(trainer, max_points: int, world_from_scene=None, seed: int =
     points, colors = [], []
     for i in range(len(split)):
         out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
-                                   distortion=split.distortion[i] if split.has_distortion else None)
+                                   distortion=split.distortion[i] if split.has_distortion else None,
+                                   fisheye=split.fisheye)
         rays_o, rays_d = image_rays(split, i)
         p, c = point_cloud(rays_o, rays_d, out["depth"].reshape(-1), out["opacity"].reshape(-1),
                            out["rgb"].reshape(-1, 3), world_from_scene=world_from_scene)
