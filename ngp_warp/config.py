@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 from ngp_warp._checks import check_numbers
 from ngp_warp.data import Scene
 from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig
+from ngp_warp.scene_defaults import appearance_dim, choose_contraction, cone_steps, contraction_box
+from ngp_warp.transforms_json import CONTRACTIONS
 
 
 @dataclass
@@ -28,7 +30,10 @@ class TrainConfig:
     seed: int = 0
     grid_resolution: int = 128
     steps_per_diagonal: int = 1024      # marching step = finest cascade's diagonal / this
-    cone_angle: float = 0.0
+    cone_angle: float | None = None     # Δt = clamp(t·cone_angle, step, max); None: per scene (1/256 for
+                                        # scenes beyond the unit box or unbounded, 0 for NeRF-synthetic)
+    contraction: str | None = "auto"    # "l2" | "linf" | None: unbounded space contracted (mip-NeRF 360,
+                                        # nerfstudio's L∞); "auto": the scene's (scene_defaults)
     early_stop_eps: float = 1e-4
     mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
                                         # field's graphs, "tf32" matmuls, or "fp32"
@@ -46,7 +51,8 @@ class TrainConfig:
     def check(self) -> None:
         """Raise ValueError naming the first setting outside its range (None is left to the
         device), the field's sizes included."""
-        choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4)}
+        choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4),
+                   "contraction": ("auto", None, *CONTRACTIONS)}
         for name, allowed in choices.items():
             value = getattr(self, name)
             if value not in allowed or type(value) not in (str, int, type(None)):
@@ -55,7 +61,7 @@ class TrainConfig:
                                      "steps_per_diagonal"),
                        positive=("seconds", "lr"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"),
-                       optional=("steps", "seconds", "target_samples"))
+                       optional=("steps", "seconds", "target_samples", "cone_angle"))
         if not 0.0 <= self.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
         if type(self.seed) is not int or not 0 <= self.seed < 2**63:
@@ -81,8 +87,8 @@ def _check_finite(config: TrainConfig) -> None:
 
 def apply_overrides(config: TrainConfig, settings: list[str]) -> TrainConfig:
     """A copy of ``config`` with ``key=value`` settings applied (``field.key`` for the field's
-    sizes); values take the setting's declared type (``none`` for settings that default to
-    None, e.g. ``field.finest_resolution``). Raises ValueError on unknown keys or values that do
+    sizes); values take the setting's declared type (``none`` for settings that may be None,
+    e.g. ``field.finest_resolution`` or ``contraction``). Raises ValueError on unknown keys or values that do
     not parse."""
     config = dataclasses.replace(config, field=dataclasses.replace(config.field))
     for item in settings:
@@ -94,7 +100,7 @@ def apply_overrides(config: TrainConfig, settings: list[str]) -> TrainConfig:
             raise ValueError(f"unknown setting {item!r}; expected key=value with key one of "
                              f"{', '.join(sorted(names | field_names))}")
         declared = {f.name: f for f in dataclasses.fields(target)}[name]
-        optional = declared.default is None
+        optional = declared.default is None or "None" in declared.type
         value = None if optional and text.lower() == "none" else _parse_value(declared.type, text, key)
         setattr(target, name, value)
     return config
@@ -144,7 +150,7 @@ def default_target_samples(config: TrainConfig, device_type: str) -> int:
     return config.target_samples or (1 << 18 if device_type == "cuda" else 1 << 15)
 
 
-def pixel_matched_resolution(scene: Scene, subpixels: int = 1) -> float:
+def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str | None = None) -> float:
     """The finest hash-grid resolution whose cells are about one training pixel wide at the
     field box's centre: the box's longest side over the median pixel footprint (camera distance
     to the centre over the focal length fx), rounded, clamped to [64, 2048 per unit cube]
@@ -157,26 +163,39 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1) -> float:
     views do not share. With 2×2 sub-rays per pixel (H200, 300 s, 25 views) finest 413 / 584 /
     826 gave 36.67 / 36.84 / 36.70 dB, and with 3×3, 716 against 1239 cells gave 36.95 against
     36.76 dB: the sub-rays resolve detail finer than a pixel, but not a full sub-pixel's worth.
+
+    With a ``contraction`` the box is the contraction's inner box
+    (:func:`ngp_warp.scene_defaults.contraction_box`), which fills half of the hash grid's side
+    (its [-1, 1] in the contracted [-2, 2]): the resolution returned is twice the box's.
     """
     split = scene.train
-    box = scene.aabb.double()
+    box = (scene.aabb if contraction is None else contraction_box(scene)).double()
     centre = 0.5 * (box[:3] + box[3:])
     distance = (split.c2w[:, :, 3].double() - centre).norm(dim=-1)
     footprint = float((distance / split.intrinsics[:, 0].double()).median()) / math.sqrt(subpixels)
     side = float((box[3:] - box[:3]).max())
     unit = float((scene.occupancy_aabb[3:] - scene.occupancy_aabb[:3]).max())
     ceiling = INSTANT_NGP_FINEST_RESOLUTION * side / unit
-    return float(min(max(round(side / max(footprint, 1e-12)), 64), ceiling))
+    grid_sides = 1 if contraction is None else 2
+    return float(grid_sides * min(max(round(side / max(footprint, 1e-12)), 64), ceiling))
 
 
 def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> TrainConfig:
-    """``config``, checked, or a copy with the settings left to None filled in for the device
-    (:func:`device_defaults`) and the scene (the finest resolution, by
-    :func:`pixel_matched_resolution`), so that checkpoints store the numbers used. Raises
+    """``config``, checked, or a copy with the settings left to None or "auto" filled in for the
+    device (:func:`device_defaults`) and the scene (:mod:`ngp_warp.scene_defaults`: the
+    contraction, the cone angle and the appearance code size; the finest resolution, by
+    :func:`pixel_matched_resolution`), so that checkpoints store the values used. Raises
     ValueError naming a setting out of range."""
     config.check()
     config = device_defaults(config, device_type)
-    if config.field.finest_resolution is None:
-        finest = pixel_matched_resolution(scene, config.supersample)
-        config = dataclasses.replace(config, field=dataclasses.replace(config.field, finest_resolution=finest))
+    kind = choose_contraction(config.contraction, scene)
+    cone = cone_steps(scene, kind)[0] if config.cone_angle is None else config.cone_angle
+    config = dataclasses.replace(config, contraction=kind, cone_angle=cone)
+    field_config = config.field
+    if field_config.appearance_dim is None:
+        field_config = dataclasses.replace(field_config, appearance_dim=appearance_dim(scene))
+    if field_config.finest_resolution is None:
+        finest = pixel_matched_resolution(scene, config.supersample, kind)
+        field_config = dataclasses.replace(field_config, finest_resolution=finest)
+    config = dataclasses.replace(config, field=field_config)
     return config

@@ -52,13 +52,15 @@ class FieldConfig:
                                             # (pixel_matched_resolution); NGPField alone: 2048
     hidden: int = 64
     geo_features: int = 16
-    appearance_dim: int = 0  # per-image appearance code size A (0: none; real captures: 16)
+    appearance_dim: int | None = None  # per-image appearance code size A (0: none); None: the
+                                       # Trainer picks per scene (16 for captures, 0 for
+                                       # NeRF-synthetic; scene_defaults.appearance_dim); NGPField alone: 0
 
     def check(self) -> None:
-        """Raise ValueError naming the first size outside its range (a None finest resolution is
-        left to the Trainer)."""
-        if type(self.appearance_dim) is not int or self.appearance_dim < 0:
-            raise ValueError(f"appearance_dim must be a non-negative int, got {self.appearance_dim!r}")
+        """Raise ValueError naming the first size outside its range (a None finest resolution or
+        appearance code size is left to the Trainer)."""
+        if self.appearance_dim is not None and (type(self.appearance_dim) is not int or self.appearance_dim < 0):
+            raise ValueError(f"appearance_dim must be a non-negative int or None, got {self.appearance_dim!r}")
         check_numbers(self, counts=("n_levels", "base_resolution", "hidden", "geo_features", "log2_hashmap_size"),
                       positive=("finest_resolution",), optional=("finest_resolution",))
         if self.n_features_per_level not in (1, 2, 4, 8) or type(self.n_features_per_level) is not int:
@@ -148,7 +150,8 @@ class NGPField(nn.Module):
         cfg = config or FieldConfig()
         if contraction is not None and contraction not in KINDS:
             raise ValueError(f"contraction must be None or one of {sorted(KINDS)}, got {contraction!r}")
-        if cfg.appearance_dim > 0 and (type(n_images) is not int or n_images < 1):
+        codes = cfg.appearance_dim or 0
+        if codes > 0 and (type(n_images) is not int or n_images < 1):
             raise ValueError(f"appearance codes need n_images ≥ 1, got {n_images!r}")
         self.config = cfg
         self.contraction = contraction
@@ -166,10 +169,10 @@ class NGPField(nn.Module):
             desired_resolution=cfg.finest_resolution or INSTANT_NGP_FINEST_RESOLUTION,
         )
         self.density_mlp = _mlp([self.encoding.n_output_dims, cfg.hidden, cfg.geo_features])
-        self.color_mlp = _mlp([cfg.geo_features + 16 + cfg.appearance_dim, cfg.hidden, cfg.hidden, 3])
+        self.color_mlp = _mlp([cfg.geo_features + 16 + codes, cfg.hidden, cfg.hidden, 3])
         self.appearance = None
-        if cfg.appearance_dim > 0:
-            self.appearance = nn.Embedding(n_images, cfg.appearance_dim)
+        if codes > 0:
+            self.appearance = nn.Embedding(n_images, codes)
             nn.init.normal_(self.appearance.weight, std=0.01)
 
     def mlp_parameters(self) -> list[nn.Parameter]:

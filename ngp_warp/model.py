@@ -17,6 +17,7 @@ from ngp_warp.field import FieldConfig, NGPField
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.raymarch import MarchOptions
 from ngp_warp.render import FieldFn, render_rays
+from ngp_warp.scene_defaults import cone_steps, contraction_box
 
 FAR = 1e4  # far distance of every ray (world units); the grid ends rays long before it
 
@@ -43,18 +44,31 @@ class RadianceModel:
 
     @classmethod
     def for_scene(cls, scene: Scene, field_config: FieldConfig, device: torch.device, *, grid_resolution: int,
-                  steps_per_diagonal: int, cone_angle: float, **settings) -> RadianceModel:
-        """A fresh field over ``scene.aabb`` and a grid over its occupancy box, on ``device``,
-        marched from the scene's near distance to :data:`FAR`. The step is the finest cascade's
-        diagonal over ``steps_per_diagonal`` (instant-ngp's √3/1024 of its unit cube), not the
-        whole field box's, which is aabb_scale times larger for instant-ngp scenes.
-        ``settings``: the constructor's keywords."""
-        field = NGPField(scene.aabb.to(device), field_config).to(device)
-        grid = OccupancyGrid(scene.occupancy_aabb, resolution=grid_resolution,
-                             levels=scene.occupancy_levels).to(device)
-        box = scene.occupancy_aabb
-        step_size = float((box[3:] - box[:3]).norm()) / steps_per_diagonal
-        march = MarchOptions(near=scene.near, far=FAR, step_size=step_size, cone_angle=cone_angle)
+                  steps_per_diagonal: int, cone_angle: float, contraction: str | None = None,
+                  **settings) -> RadianceModel:
+        """A fresh field and occupancy grid for ``scene`` on ``device``, marched from the scene's
+        near distance to :data:`FAR`, one appearance code per training image when
+        ``field_config.appearance_dim`` > 0. ``settings``: the constructor's keywords.
+
+        Without ``contraction``: the field over ``scene.aabb``, the grid over its occupancy box
+        (its cascades), the step the finest cascade's diagonal over ``steps_per_diagonal``
+        (instant-ngp's √3/1024 of its unit cube), not the whole field box's, which is aabb_scale
+        times larger for instant-ngp scenes. With ``contraction`` (``"l2"`` or ``"linf"``): field
+        and grid in contracted space around :func:`~ngp_warp.scene_defaults.contraction_box`, the
+        step the contracted grid's diagonal over ``steps_per_diagonal``. Cone steps
+        (``cone_angle`` > 0) grow up to :func:`~ngp_warp.scene_defaults.cone_steps`' largest step.
+        """
+        box = scene.occupancy_aabb if contraction is None else contraction_box(scene)
+        field = NGPField(scene.aabb if contraction is None else box, field_config, contraction=contraction,
+                         n_images=len(scene.train)).to(device)
+        levels = scene.occupancy_levels if contraction is None else 1
+        grid = OccupancyGrid(box, resolution=grid_resolution, levels=levels, contraction=contraction).to(device)
+        if contraction is None:
+            step_size = float((box[3:] - box[:3]).norm()) / steps_per_diagonal
+        else:
+            step_size = grid.default_step_size * 1024 / steps_per_diagonal
+        max_step = cone_steps(scene, contraction)[2] if cone_angle > 0 else None
+        march = MarchOptions(near=scene.near, far=FAR, step_size=step_size, cone_angle=cone_angle, max_step=max_step)
         return cls(field, grid, march, **settings)
 
     @property
@@ -63,8 +77,20 @@ class RadianceModel:
 
     @property
     def step_size(self) -> float:
-        """The marching step (world units)."""
-        return self.march.step_size
+        """The marching step in world units: with a contraction, the world length of the march's
+        step (in contracted units) inside the inner box, its mean half side times it."""
+        if self.grid.contraction is None:
+            return self.march.step_size
+        inner = self.grid.inner_aabb_host
+        half_side = sum(hi - lo for lo, hi in zip(inner[:3], inner[3:])) / 6.0
+        return self.march.step_size * half_side
+
+    @property
+    def learns_background(self) -> bool:
+        """Whether the field models the far background (unbounded, contracted space): opaque
+        training images are then fitted over black and rendered over black, so that the field
+        itself must supply the background's colour."""
+        return self.grid.contraction is not None
 
     @contextlib.contextmanager
     def precision(self):
@@ -88,7 +114,7 @@ class RadianceModel:
     def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, field_fn: FieldFn, *, background=None,
                stratified: bool = False, sigma_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
                sample_capacity: int | None = None, return_samples: bool = False,
-               before_sync: Callable[[], None] | None = None) -> dict:
+               before_sync: Callable[[], None] | None = None, ray_images: torch.Tensor | None = None) -> dict:
         """Rays ``rays_o``, ``rays_d`` ([N, 3] float32, unit directions) through the grid,
         evaluated by ``field_fn`` (the field, or a graphed stand-in for it): the dict of
         :func:`ngp_warp.render_rays`, whose other keywords these are, with this model's march
@@ -97,5 +123,6 @@ class RadianceModel:
             rays_o, rays_d, self.grid, field_fn, self._stratified if stratified else self.march,
             early_stop_eps=self.early_stop_eps, background=background,
             sigma_fn=sigma_fn, sample_capacity=sample_capacity,
-            return_samples=return_samples, before_sync=before_sync,
+            return_samples=return_samples, before_sync=before_sync, ray_images=ray_images,
+            validate=False,  # the trainer's and renderer's own rays: checked where they are made
         )

@@ -91,14 +91,19 @@ def _pruned(samples: RaySamples, sigma_fn, grid: OccupancyGrid, early_stop_eps: 
     return samples, extra
 
 
-def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float):
-    """(rgb [N, 3], opacity [N], depth [N], weights [S]) of the samples through ``field_fn``."""
+def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_images: torch.Tensor | None):
+    """(rgb [N, 3], opacity [N], depth [N], weights [S]) of the samples through ``field_fn``,
+    which also gets each sample's image (padding rows, of ray N: image 0) given ``ray_images``."""
     n_rays, dev = samples.ray_offsets.shape[0] - 1, samples.ray_offsets.device
     n_samples = samples.n_samples
     if n_samples == 0:
         rgb, per_ray = torch.zeros(n_rays, 3, device=dev), torch.zeros(n_rays, device=dev)
         return rgb, per_ray, per_ray.clone(), torch.zeros(0, device=dev)
-    sigmas, rgbs = field_fn(samples.positions, samples.directions)
+    if ray_images is None:
+        sigmas, rgbs = field_fn(samples.positions, samples.directions)
+    else:
+        sample_images = torch.nn.functional.pad(ray_images, (0, 1))[samples.ray_indices]
+        sigmas, rgbs = field_fn(samples.positions, samples.directions, sample_images)
     _check_sigmas(sigmas, n_samples, "field_fn")
     if not isinstance(rgbs, torch.Tensor) or tuple(rgbs.shape) != (n_samples, 3):
         raise ValueError(f"field_fn must return rgbs of shape [{n_samples}, 3], "
@@ -122,6 +127,7 @@ def render_rays(
     sample_capacity: int | None = None,
     return_samples: bool = False,
     before_sync: Callable[[], None] | None = None,
+    ray_images: torch.Tensor | None = None,
     validate: bool = True,
 ) -> dict:
     """Render rays through ``grid`` with the radiance field ``field_fn``.
@@ -153,6 +159,9 @@ def render_rays(
         before_sync: as in :func:`ngp_warp.ray_marching`: called once, when the march has
             queued its count and before the host waits for it (independent device work there
             hides the synchronisation).
+        ray_images: optional [N] int64 training-image index of each ray (for per-image
+            appearance codes); then ``field_fn`` is called as ``field_fn(positions, directions,
+            images [S] int64)`` with each sample's image (padding rows: image 0).
         validate: check the inputs (on by default for direct calls): finite origins and unit
             directions (read with the march's sample count: no extra host sync) and σ ≥ 0 from
             ``field_fn`` and ``sigma_fn`` (one host sync each); ValueError otherwise. Training
@@ -171,6 +180,11 @@ def render_rays(
         raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
     if sample_capacity is not None and (sigma_fn is None or sample_capacity < 1):
         raise ValueError("sample_capacity needs a sigma_fn and must be ≥ 1")
+    n_rays = rays_o.shape[0]
+    if ray_images is not None and (not isinstance(ray_images, torch.Tensor) or ray_images.dtype != torch.int64
+                                   or tuple(ray_images.shape) != (n_rays,) or ray_images.device != rays_o.device):
+        raise ValueError(f"ray_images must be None or a [{n_rays}] int64 tensor on {rays_o.device}, "
+                         f"got {getattr(ray_images, 'shape', type(ray_images).__name__)}")
     samples = ray_marching(rays_o, rays_d, grid, march, before_sync=before_sync, validate=validate,
                            unit_directions=True)
     if validate:
@@ -179,7 +193,7 @@ def render_rays(
     extra = {}
     if sigma_fn is not None:
         samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity)
-    rgb, opacity, depth, weights = _shade(samples, field_fn, early_stop_eps)
+    rgb, opacity, depth, weights = _shade(samples, field_fn, early_stop_eps, ray_images)
     if bg is not None:
         rgb = rgb + bg * (1.0 - opacity)[:, None]
     out = {"rgb": rgb, "opacity": opacity, "depth": depth, "n_samples": samples.n_samples, **extra}

@@ -20,8 +20,8 @@ class _FieldForward(torch.nn.Module):
         super().__init__()
         self.field = field
 
-    def forward(self, positions: torch.Tensor, directions: torch.Tensor):
-        return self.field(positions, directions)
+    def forward(self, positions: torch.Tensor, directions: torch.Tensor, image_indices: torch.Tensor | None = None):
+        return self.field(positions, directions, image_indices)
 
 
 class TrainingField:
@@ -43,8 +43,12 @@ class TrainingField:
         self.graphed_forward = None  # captured on the first call at ``rows`` rows
         self.graphed_density: GraphedDensity | None = None
 
-    def __call__(self, positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(positions [S, 3], directions [S, 3] float32) → (σ [S], rgb [S, 3]), as the field."""
+    def __call__(self, positions: torch.Tensor, directions: torch.Tensor,
+                 image_indices: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(positions [S, 3], directions [S, 3] float32, optional image_indices [S] int64 of the
+        appearance codes) → (σ [S], rgb [S, 3]), as the field. The graphs take the indices as
+        one more fixed-size input when the first call had them."""
+        inputs = (positions, directions) if image_indices is None else (positions, directions, image_indices)
         if self.graphs and positions.shape[0] == self.rows and self.field.training:
             if self.graphed_forward is None:
                 # The capture's warm-up runs on a side stream, so autograd would warn that the
@@ -55,9 +59,9 @@ class TrainingField:
                 # Capture a wrapper: make_graphed_callables replaces the captured module's
                 # forward, and the field itself must stay callable at any size.
                 self.graphed_forward = torch.cuda.make_graphed_callables(
-                    _FieldForward(self.field), (positions.detach().clone(), directions.detach().clone()))
-            return self.graphed_forward(positions, directions)
-        return self.field(positions, directions)
+                    _FieldForward(self.field), tuple(t.detach().clone() for t in inputs))
+            return self.graphed_forward(*inputs)
+        return self.field(*inputs)
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
         """positions [S, 3] float32 → σ [S], no gradient (before pruning, and for the grid
@@ -137,7 +141,7 @@ class StepPhases:
     grid_update: Callable    # (step, density_fn) → None: the occupancy grid's refresh
     render: Callable         # (rays_o, rays_d) → render dict of the batch
     density: Callable        # positions [S, 3] → σ [S], no gradient
-    field: Callable          # (positions, directions) → (σ [S], rgb [S, 3])
+    field: Callable          # (positions, directions[, images [S] int64]) → (σ [S], rgb [S, 3])
     optimizer_update: Callable  # () → None: queue the deferred optimizer update
     loss: Callable           # ngp_warp.losses.ray_loss
     distortion: Callable     # ngp_warp.losses.distortion_loss_packed

@@ -54,8 +54,11 @@ class Trainer:
         self.train_split: Split = scene.train.to(self.device)
         self.model = RadianceModel.for_scene(
             scene, cfg.field, self.device, grid_resolution=cfg.grid_resolution,
-            steps_per_diagonal=cfg.steps_per_diagonal, cone_angle=cfg.cone_angle,
+            steps_per_diagonal=cfg.steps_per_diagonal, cone_angle=cfg.cone_angle, contraction=cfg.contraction,
             early_stop_eps=cfg.early_stop_eps, mlp_precision=cfg.mlp_precision)
+        # opaque images of unbounded scenes: the field learns the background, fitted over black
+        self.black_background = self.model.learns_background and self.train_split.images.shape[-1] == 3
+        self.batch_images: torch.Tensor | None = None  # [p k] int64 image per ray of the last batch
         self.target_samples = default_target_samples(cfg, self.device.type)
         self.rays = RayCount(cfg.initial_rays, cfg.max_rays, self.target_samples, self.device)
         self.weights = FieldOptimizer(self.field, cfg.lr, cfg.weight_decay, cfg.weight_average, cfg.lazy_table_adam)
@@ -94,12 +97,16 @@ class Trainer:
         """Rays through random pixels across all training images → (rays_o, rays_d [p k, 3],
         target rgb and background [p, 3] per pixel) for p = max(1, n div k) pixels of k =
         supersample² rays each, drawn in one launch from a seed that mixes the config's seed
-        with the step count (and :attr:`ray_stream`)."""
+        with the step count (and :attr:`ray_stream`). The background is black where the field
+        learns it (:attr:`RadianceModel.learns_background`, opaque images). With appearance
+        codes, each ray's training image goes to :attr:`batch_images` (for :meth:`_render_batch`)."""
         seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B
                 + self.ray_stream * 0xC2B2AE35) & 0x7FFFFFFF
         sub = self.config.supersample
         b = sample_pixels(self.train_split, max(1, n // (sub * sub)), seed, sub)
-        return b.rays_o, b.rays_d, b.target, b.background
+        if self.field.appearance is not None:
+            self.batch_images = b.pixels[:, 0].long().repeat_interleave(sub * sub)
+        return b.rays_o, b.rays_d, b.target, b.background.zero_() if self.black_background else b.background
 
     def _density_for_grid(self, x: torch.Tensor) -> torch.Tensor:
         # The grid stores optical thickness of one step, as instant-ngp and nerfacc do. Its
@@ -118,7 +125,8 @@ class Trainer:
         return self.model.render(
             rays_o, rays_d, phases.field, background=None, stratified=True,
             sigma_fn=phases.density if cfg.prune else None, sample_capacity=capacity,
-            return_samples=cfg.distortion_weight > 0, before_sync=phases.optimizer_update)
+            return_samples=cfg.distortion_weight > 0, before_sync=phases.optimizer_update,
+            ray_images=self.batch_images)
 
     def step(self, progress: float = 0.0) -> dict:
         """One update on about ``target_samples`` samples, ``progress`` in [0, 1] through the
