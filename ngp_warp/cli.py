@@ -1,4 +1,4 @@
-"""The ``ngp-warp`` command: train, eval, render, bench, demo."""
+"""The ``ngp-warp`` command: train, eval, render, export, view, bench, demo."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 CHECKPOINT = "checkpoint.pt"
+ORBIT_FPS = 20.0  # the training run's orbit video
 
 
 class UserError(Exception):
@@ -83,7 +84,8 @@ def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
 
 def _run(scene, scene_path: Path, folder, args, device: str, config, resume: bool) -> dict:
     from ngp_warp.checkpoint import load_trainer, save_checkpoint
-    from ngp_warp.evaluate import evaluate, render_orbit
+    from ngp_warp.camera_path import around_cameras
+    from ngp_warp.evaluate import evaluate
     from ngp_warp.trainer import Trainer
 
     out = folder.path
@@ -116,7 +118,11 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     save()
     metrics = evaluate(trainer, out, show_progress=not args.quiet)
     if not args.no_video:
-        video = render_orbit(trainer, out / "orbit.mp4", n_frames=args.frames, show_progress=not args.quiet)
+        train = scene.train
+        centre = ((scene.aabb[:3] + scene.aabb[3:]) / 2).cpu()
+        orbit = around_cameras("orbit", train.c2w, train.intrinsics, train.width, train.height, centre,
+                               args.frames, ORBIT_FPS)
+        video = _render_video(trainer, orbit, out / "orbit.mp4", depth=False, quiet=args.quiet)[0]
         print(f"orbit video: {video}", file=sys.stderr)
     return metrics
 
@@ -209,21 +215,37 @@ def cmd_eval(args) -> None:
     _print_metrics(evaluate(trainer, out, show_progress=not args.quiet), out)
 
 
+def _render_video(trainer, path, out: Path, depth: bool, quiet: bool) -> list[Path]:
+    """The video (and with ``depth`` its depth video) of a camera path through the trained field, on white."""
+    from ngp_warp.video_out import render_path_video
+
+    def frame(c2w, intrinsics, width, height):
+        return trainer.render_image(c2w, intrinsics, width, height, background=1.0)
+
+    return render_path_video(frame, path, out, depth=depth, show_progress=not quiet)
+
+
 def cmd_render(args) -> None:
     from ngp_warp.checkpoint import load_trainer
-    from ngp_warp.evaluate import render_orbit
+    from ngp_warp.video_out import PATH_KINDS, camera_path_from_args
 
     video = Path(args.video)
     if video.suffix.lower() not in (".mp4", ".gif"):
         raise UserError(f"--video {video}: expected a .mp4 or .gif path")
-    trainer, _ = load_trainer(Path(args.dir) / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
+    if args.path not in PATH_KINDS and not Path(args.path).is_file():
+        raise UserError(f"--path {args.path}: no such file (or use {' or '.join(PATH_KINDS)})")
+    trainer, record = load_trainer(Path(args.dir) / CHECKPOINT, device=_device(args.device), scene_path=args.scene)
     out = _writable_dir(Path(args.dir))
     if not video.is_absolute():
         video = out / video
     if not video.parent.is_dir():
         raise UserError(f"--video {video}: folder {video.parent} does not exist")
-    written = render_orbit(trainer, video, n_frames=args.frames, show_progress=not args.quiet)
-    print(f"wrote {written}")
+    try:
+        path = camera_path_from_args(args, trainer.scene, record["path"])
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    for written in _render_video(trainer, path, video, depth=args.depth_video, quiet=args.quiet):
+        print(f"wrote {written}")
 
 
 def cmd_bench(args) -> None:
@@ -263,6 +285,10 @@ def _folder(text: str) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from ngp_warp.export import add_export_parser
+    from ngp_warp.video_out import add_path_arguments
+    from ngp_warp.viewer import add_view_parser
+
     p = argparse.ArgumentParser(prog="ngp-warp", description="instant-NGP radiance fields on Warp kernels (CPU or CUDA)")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -306,13 +332,16 @@ def _parser() -> argparse.ArgumentParser:
     common(e)
     e.set_defaults(func=cmd_eval)
 
-    r = sub.add_parser("render", help="render an orbit video from a trained output folder")
+    r = sub.add_parser("render", help="render a video along a camera path from a trained output folder")
     r.add_argument("dir", type=_folder)
     r.add_argument("--video", default="orbit.mp4", help="video path (.mp4, or .gif; relative to DIR)")
-    r.add_argument("--frames", type=_positive(int), default=60)
+    add_path_arguments(r, _positive(int), _positive(float))
     r.add_argument("--scene", help="scene folder, if it moved since training")
     common(r)
     r.set_defaults(func=cmd_render)
+
+    common(add_export_parser(sub, _positive(int), _positive(float)))
+    common(add_view_parser(sub, _positive(int)))
 
     b = sub.add_parser("bench", help="kernel throughput table")
     b.add_argument("--quick", action="store_true", help="small sizes only")

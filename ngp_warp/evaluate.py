@@ -1,9 +1,8 @@
-"""Evaluation (PSNR/SSIM on the test split, white background), renders, depth maps, orbit video."""
+"""Evaluation (PSNR, SSIM and LPIPS when available, on the test split, white background), renders and depth maps."""
 
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -51,7 +50,7 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     for i in range(0, len(split.names), every):
         out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
                                    distortion=split.distortion[i] if split.has_distortion else None,
-                                   background=1.0, spp=spp)
+                                   background=1.0, spp=spp, fisheye=split.fisheye)
         yield split.names[i], out, composite_on(split.images[i].to(trainer.device), white)
 
 
@@ -110,52 +109,3 @@ def finite_or_null(metrics: dict) -> dict:
         cleaned["notes"] = [*cleaned.get("notes", []), note]
     return cleaned
 
-
-def _rotation(axis: torch.Tensor, angle: float) -> torch.Tensor:
-    """Rodrigues rotation matrix about a unit axis."""
-    k = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return torch.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
-
-
-def orbit_cameras(c2w: torch.Tensor, center: torch.Tensor, n_frames: int) -> torch.Tensor:
-    """[n_frames, 3, 4] cameras circling ``center`` about the mean camera up axis, starting at the
-    first given camera, looking at the centre (OpenGL convention)."""
-    c2w = c2w.float().cpu()
-    up = c2w[:, :3, 1].mean(0)
-    up = up / up.norm().clamp_min(1e-8)
-    start = c2w[0, :3, 3] - center
-    frames = []
-    for k in range(n_frames):
-        pos = _rotation(up, 2.0 * math.pi * k / n_frames) @ start + center
-        back = (pos - center) / (pos - center).norm()          # camera +z points away from the target
-        right = torch.linalg.cross(up, back)
-        right = right / right.norm().clamp_min(1e-8)
-        cam_up = torch.linalg.cross(back, right)
-        frames.append(torch.stack([right, cam_up, back, pos], dim=1))
-    return torch.stack(frames)
-
-
-def render_orbit(trainer: Trainer, path: Path, n_frames: int = 60, fps: int = 20,
-                 show_progress: bool = True) -> Path:
-    """Render an orbit around the scene to ``path`` (.mp4 through imageio's ffmpeg plugin when
-    installed, otherwise a GIF next to it). Returns the path written."""
-    split = trainer.scene.test
-    center = ((trainer.scene.aabb[:3] + trainer.scene.aabb[3:]) / 2).cpu()
-    cams = orbit_cameras(split.c2w, center, n_frames)
-    frames = []
-    for cam in tqdm(cams, desc="orbit", unit="frame", disable=not show_progress):
-        out = trainer.render_image(cam, split.intrinsics[0], split.width, split.height, background=1.0)
-        frames.append(to_uint8(out["rgb"]))
-    path = Path(path)
-    if path.suffix.lower() == ".mp4":
-        try:
-            import imageio_ffmpeg  # noqa: F401  (optional: the mp4 writer)
-        except ImportError:
-            path = path.with_suffix(".gif")
-    tmp = path.with_name(path.name + ".partial" + path.suffix)
-    if path.suffix.lower() == ".gif":
-        iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=1000 / fps, loop=0)
-    else:
-        iio.imwrite(tmp, np.stack(frames), extension=".mp4", fps=fps)
-    tmp.replace(path)
-    return path
