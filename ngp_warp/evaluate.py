@@ -44,18 +44,25 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
 def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1):
     """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th view of
     ``split`` (default: the test split), rendered (``spp`` as in ``Trainer.render_image``) and
-    composited on white."""
+    composited on white; where the field learns the background (``Trainer.black_background``:
+    unbounded scenes, opaque images) the renders are composited on black. With appearance codes
+    every view is rendered with the mean code of the training images."""
     split = trainer.scene.test if split is None else split
     white = torch.ones(3, device=trainer.device)
+    background = 0.0 if trainer.black_background else 1.0
     for i in range(0, len(split.names), every):
         out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
                                    distortion=split.distortion[i] if split.has_distortion else None,
-                                   background=1.0, spp=spp, fisheye=split.fisheye)
+                                   background=background, spp=spp, fisheye=split.fisheye)
         yield split.names[i], out, composite_on(split.images[i].to(trainer.device), white)
 
 
 def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
-    """Render every test view on white, score it, write renders/ depth/ and metrics.json."""
+    """Render every test view on white, score it, write renders/ depth/ and metrics.json.
+
+    With per-image appearance codes a test view has no code of its own: it is rendered, and
+    scored on the whole image, with the mean of the training images' codes (metrics.json says
+    ``"appearance": "mean embedding"``; no per-view code is fitted)."""
     out_dir = Path(out_dir)
     per_image = []
     bar = tqdm(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
@@ -81,6 +88,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
         "device": str(trainer.device),
         "test_split": "held-out training frames" if trainer.scene.test_is_heldout else "test",
         "n_test_images": len(per_image),
+        **({"appearance": "mean embedding"} if trainer.field.appearance is not None else {}),
         "per_image": per_image,
     }
     metrics = finite_or_null(metrics)
