@@ -35,6 +35,14 @@ from ngp_warp.viewer import Viewer, load_target, viser_from_c2w  # noqa: E402
 WIDTH, HEIGHT = 800, 500
 
 
+def clean_screenshot(browser: DevTools) -> np.ndarray:
+    """The page without the software-WebGL notice (headless Chromium has no GPU)."""
+    browser.call("Runtime.evaluate", expression="document.querySelectorAll('.mantine-Notification-root')"
+                                                ".forEach(n => n.remove())")
+    time.sleep(0.5)
+    return browser.screenshot().astype(np.uint8)
+
+
 def viewer_picture(run: Path, out: Path, profile: Path) -> None:
     trainer, _ = load_target(Namespace(target=str(run), scene=None), "cpu")
     viewer = Viewer(trainer, "127.0.0.1", 0, resolution=400, moving_resolution=100, live=False)
@@ -45,7 +53,7 @@ def viewer_picture(run: Path, out: Path, profile: Path) -> None:
     try:
         wait_for(lambda: any(v.full_sent and v.frames for v in viewer.clients.values()), "a full frame", 120)
         time.sleep(2.0)
-        iio.imwrite(out, browser.screenshot().astype(np.uint8), optimize=True)
+        iio.imwrite(out, clean_screenshot(browser), optimize=True)
     finally:
         browser.close()
         stop.set()
@@ -75,8 +83,8 @@ def mesh_picture(run: Path, mesh_path: Path, out: Path, profile: Path) -> None:
         wxyz, position = viser_from_c2w(split.c2w[0])
         client.camera.wxyz, client.camera.position = wxyz, position
         client.camera.fov = 2 * math.atan(0.5 * split.height / float(split.intrinsics[0, 1]))
-        time.sleep(4.0)
-        iio.imwrite(out, browser.screenshot().astype(np.uint8), optimize=True)
+        time.sleep(10.0)
+        iio.imwrite(out, clean_screenshot(browser), optimize=True)
     finally:
         browser.close()
         server.stop()

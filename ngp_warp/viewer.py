@@ -131,12 +131,15 @@ class Viewer:
             wxyz, position = viser_from_c2w(split.c2w[i])
             fov = 2 * math.atan(0.5 * split.height / float(split.intrinsics[i, 1]))
             self.server.scene.add_camera_frustum(f"/train/{i}", fov=fov, aspect=split.width / split.height,
-                                                 scale=0.05 * max(extent, 1e-3), wxyz=wxyz, position=position,
+                                                 scale=0.03 * max(extent, 1e-3), wxyz=wxyz, position=position,
                                                  color=(40, 110, 220))
         up = split.c2w[:, :3, 1].mean(0)
-        self.server.scene.set_up_direction(tuple((up / up.norm().clamp_min(1e-9)).tolist()))
+        up = up / up.norm().clamp_min(1e-9)
+        self.server.scene.set_up_direction(tuple(up.tolist()))
         centre = (self.trainer.scene.aabb[:3] + self.trainer.scene.aabb[3:]) / 2
-        self.server.initial_camera.position = tuple(split.c2w[0, :, 3].tolist())
+        # behind and above the first training camera, its frustum out of the middle of the view
+        offset = split.c2w[0, :, 3] - centre
+        self.server.initial_camera.position = tuple((centre + 1.3 * offset + 0.3 * offset.norm() * up).tolist())
         self.server.initial_camera.look_at = tuple(centre.tolist())
         self.server.initial_camera.fov = 2 * math.atan(0.5 * split.height / float(split.intrinsics[0, 1]))
 
@@ -154,7 +157,9 @@ class Viewer:
 
     def _status_text(self) -> str:
         s = self.stats
-        mode = ("paused" if self.paused.value else "training") if self.live else "trained"
+        if not self.live:
+            return f"**trained** · step {s['step']}"
+        mode = "paused" if self.paused.value else "training"
         return f"**{mode}** · step {s['step']} · loss {s['loss']:.4f} · PSNR {s['psnr']:.2f} dB"
 
     def render(self, view: ClientView, longest: int) -> None:
