@@ -21,6 +21,7 @@ views, renders) use the mean code over the training images.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -37,6 +38,7 @@ from ngp_warp.kernels import field as K
 
 INSTANT_NGP_FINEST_RESOLUTION = 2048.0  # instant-ngp's finest level over its unit cube
 INSTANT_NGP_LOG2_HASHMAP_SIZE = 19      # instant-ngp's table size per level, 2^19 entries
+INITIAL_OPTICAL_DEPTH = 0.05            # of an untrained contracted field across its inner box
 
 
 @dataclass
@@ -123,6 +125,16 @@ def density_from_log(log_sigma: torch.Tensor, positions: torch.Tensor, aabb: tor
     return sigma
 
 
+def _contracted_density_shift(aabb: torch.Tensor) -> float:
+    """s of σ = exp(h − s) for a contracted field: an untrained field (h ≈ 0) then has optical
+    depth :data:`INITIAL_OPTICAL_DEPTH` across the inner box (σ₀ · 2 · its mean half side), so
+    that rays start nearly transparent, as DVGO's ``alpha_init`` does for unbounded scenes;
+    at σ = 1 everywhere the rays would stop within a world unit of the cameras, where the
+    colours of each training view are then painted as a fog that no other view sees."""
+    half_side = float((aabb[3:] - aabb[:3]).mean()) / 2.0
+    return math.log(2.0 * half_side / INITIAL_OPTICAL_DEPTH)
+
+
 def _mlp(sizes: list[int]) -> nn.Sequential:
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
@@ -160,6 +172,7 @@ class NGPField(nn.Module):
         # the hash grid's box: the field's box, or the contracted ball's [-2, 2]^3
         grid_box = aabb.clone() if contraction is None else torch.tensor([-2.0] * 3 + [2.0] * 3)
         self.register_buffer("grid_aabb", grid_box, persistent=False)
+        self.density_shift = 0.0 if contraction is None else _contracted_density_shift(aabb)
         self.encoding = HashGridEncoding(
             n_input_dims=3,
             n_levels=cfg.n_levels,
@@ -225,9 +238,11 @@ class NGPField(nn.Module):
             h = self._log_density(positions)
             if h.dtype not in (torch.float32, torch.bfloat16):  # e.g. float16 autocast
                 h = h.float()
+            if self.density_shift:
+                h = h - self.density_shift
             return density_from_log(h, self._grid_points(positions).contiguous(), self.grid_aabb)
         h = self._geometry(positions)
-        return trunc_exp(h[:, 0].float()) * self._inside(positions)
+        return trunc_exp(h[:, 0].float() - self.density_shift) * self._inside(positions)
 
     def appearance_codes(self, image_indices: torch.Tensor | None, n: int, device) -> list[torch.Tensor]:
         """[] without appearance codes, else [[n, A]]: the codes of ``image_indices`` ([n] int64
@@ -246,7 +261,7 @@ class NGPField(nn.Module):
         unit directions [N, 3], in training images ``image_indices`` ([N] int64; None: the mean
         appearance code; ignored without appearance codes)."""
         h = self._geometry(positions)
-        sigma = trunc_exp(h[:, 0].float()) * self._inside(positions)
+        sigma = trunc_exp(h[:, 0].float() - self.density_shift) * self._inside(positions)
         sh = spherical_harmonics_deg4(directions).to(h.dtype)
         codes = [c.to(h.dtype) for c in self.appearance_codes(image_indices, h.shape[0], h.device)]
         rgb = torch.sigmoid(self.color_mlp(torch.cat([h, sh, *codes], dim=-1)).float())

@@ -1,5 +1,7 @@
 """The field with a scene contraction and with per-image appearance codes."""
 
+import math
+
 import pytest
 import torch
 
@@ -22,7 +24,10 @@ def test_contracted_field_is_the_plain_field_of_the_contracted_point(kind):
     y = contraction_ref.contract(x, kind, INNER).float()
     sigma, rgb = field(x, d)
     sigma_ref, rgb_ref = plain(y, d)
-    torch.testing.assert_close(sigma, sigma_ref, rtol=1e-4, atol=1e-6)
+    # the contracted field's log-density is shifted so that it starts nearly transparent: optical
+    # depth 0.05 across the inner box (side 8 here) at h = 0
+    assert field.density_shift == pytest.approx(math.log(8.0 / 0.05)) and plain.density_shift == 0.0
+    torch.testing.assert_close(sigma, sigma_ref * math.exp(-field.density_shift), rtol=1e-4, atol=1e-8)
     torch.testing.assert_close(rgb, rgb_ref, rtol=1e-4, atol=1e-6)
     assert (sigma > 0).all()  # all of space is inside
     with torch.no_grad():
