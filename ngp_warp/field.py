@@ -230,6 +230,14 @@ class NGPField(nn.Module):
             return torch.ones(positions.shape[0], dtype=torch.bool, device=positions.device)
         return ((positions >= self.aabb[:3]) & (positions <= self.aabb[3:])).all(-1)
 
+    def _sigma(self, h: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """σ [N] float32 from the density MLP's output h [N, G] (its first column, shifted by
+        :attr:`density_shift` when there is one; no extra op without), zero outside the box."""
+        log_sigma = h[:, 0].float()
+        if self.density_shift:
+            log_sigma = log_sigma - self.density_shift
+        return trunc_exp(log_sigma) * self._inside(positions)
+
     def density(self, positions: torch.Tensor) -> torch.Tensor:
         """σ at positions [N, 3] float32 → [N] float32 (zero outside the box). On CUDA without
         autograd, through :meth:`_log_density`'s fused matmuls (equal up to matmul rounding)
@@ -242,7 +250,7 @@ class NGPField(nn.Module):
                 h = h - self.density_shift
             return density_from_log(h, self._grid_points(positions).contiguous(), self.grid_aabb)
         h = self._geometry(positions)
-        return trunc_exp(h[:, 0].float() - self.density_shift) * self._inside(positions)
+        return self._sigma(h, positions)
 
     def appearance_codes(self, image_indices: torch.Tensor | None, n: int, device) -> list[torch.Tensor]:
         """[] without appearance codes, else [[n, A]]: the codes of ``image_indices`` ([n] int64
@@ -261,7 +269,7 @@ class NGPField(nn.Module):
         unit directions [N, 3], in training images ``image_indices`` ([N] int64; None: the mean
         appearance code; ignored without appearance codes)."""
         h = self._geometry(positions)
-        sigma = trunc_exp(h[:, 0].float() - self.density_shift) * self._inside(positions)
+        sigma = self._sigma(h, positions)
         sh = spherical_harmonics_deg4(directions).to(h.dtype)
         codes = [c.to(h.dtype) for c in self.appearance_codes(image_indices, h.shape[0], h.device)]
         rgb = torch.sigmoid(self.color_mlp(torch.cat([h, sh, *codes], dim=-1)).float())
