@@ -216,11 +216,14 @@ def cmd_eval(args) -> None:
 
 
 def _render_video(trainer, path, out: Path, depth: bool, quiet: bool) -> list[Path]:
-    """The video (and with ``depth`` its depth video) of a camera path through the trained field, on white."""
+    """The video (and with ``depth`` its depth video) of a camera path through the trained field, on
+    white (black where the field learns the background, as in evaluation)."""
     from ngp_warp.video_out import render_path_video
 
+    background = 0.0 if trainer.black_background else 1.0
+
     def frame(c2w, intrinsics, width, height):
-        return trainer.render_image(c2w, intrinsics, width, height, background=1.0)
+        return trainer.render_image(c2w, intrinsics, width, height, background=background)
 
     return render_path_video(frame, path, out, depth=depth, show_progress=not quiet)
 
