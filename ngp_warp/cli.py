@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -33,7 +34,7 @@ def _writable_dir(path: Path) -> Path:
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
-        probe = path / ".ngp-warp-write-test"
+        probe = path / f".ngp-warp-write-test-{os.getpid()}"  # data-parallel ranks probe at once
         probe.write_text("")
         probe.unlink()
     except OSError as e:
@@ -101,6 +102,12 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
         trainer = Trainer(scene, config, device=device)
+    if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
+        from ngp_warp.distributed import is_main_rank, make_data_parallel
+
+        make_data_parallel(trainer)
+        if not is_main_rank():
+            return trainer.train(show_progress=False)
     scene = trainer.scene
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
           f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "
@@ -152,7 +159,7 @@ def _train(trainer, save, folder, args) -> None:
 def _print_metrics(metrics: dict, out: Path) -> None:
     ssim = "n/a (images under 11 px)" if metrics["ssim"] is None else f"{metrics['ssim']:.4f}"
     psnr = "n/a (not finite)" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB"
-    print(f"{metrics['test_split']}: PSNR {metrics['psnr']:.2f} dB  SSIM {ssim}  "
+    print(f"{metrics['test_split']}: PSNR {psnr}  SSIM {ssim}  "
           f"({metrics['n_test_images']} images, {metrics['steps']} steps, "
           f"{metrics['train_seconds']:.1f} s training on {metrics['device']})")
     print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
@@ -165,8 +172,12 @@ def cmd_train(args) -> None:
     if args.resume and args.overwrite:
         raise UserError("--resume with --overwrite: continue the run in --out, or replace it, not both")
     config = None if args.resume else _train_config(args)  # bad settings fail before any loading
+    from ngp_warp.distributed import join_data_parallel
+
+    args.data_parallel = join_data_parallel(args)  # under torchrun: this rank's device in args.device
     metrics = _train_and_report(scene, Path(args.out), args, config=config)
-    _print_metrics(metrics, Path(args.out))
+    if metrics is not None:  # None on ranks other than 0
+        _print_metrics(metrics, Path(args.out))
 
 
 def demo_config(device: str, steps: int | None, seconds: float | None, seed: int):
@@ -186,18 +197,35 @@ def demo_config(device: str, steps: int | None, seconds: float | None, seed: int
     return TrainConfig(steps=steps, seconds=seconds, seed=seed)
 
 
+def unbounded_demo_config(device: str, steps: int | None, seconds: float | None, seed: int):
+    """Training settings for the unbounded demo scene (100×100, 60 views; contraction, cone steps
+    and appearance codes are the scene's defaults). On the CPU as :func:`demo_config`, with a
+    step of 1/128 of the contracted grid's diagonal (0.22 world units inside the inner box; about
+    40 samples per ray, so that 2 cores train on a few hundred rays per step)."""
+    config = demo_config(device, steps, seconds, seed)
+    if device == "cpu":
+        config.steps_per_diagonal = 128
+    return config
+
+
 def cmd_demo(args) -> None:
     from ngp_warp.run_folder import RunFolder
     from ngp_warp.scene import write_demo_scene
+    from ngp_warp.scene_unbounded import write_unbounded_scene
 
     # every option is checked before the scene is generated
-    config = _with_settings(demo_config(_device(args.device), args.steps, args.seconds, args.seed), args)
+    device = _device(args.device)
+    make = demo_config if args.scene == "demo" else unbounded_demo_config
+    config = _with_settings(make(device, args.steps, args.seconds, args.seed), args)
     RunFolder(Path(args.out), overwrite=args.overwrite, flags=(None, "--overwrite"))
     out = _writable_dir(Path(args.out))
-    scene_dir = out / "scene"
+    scene_dir = out / ("scene" if args.scene == "demo" else "scene-unbounded")
     if not (scene_dir / "transforms_train.json").exists():
-        print(f"generating the demo scene in {scene_dir}", file=sys.stderr)
-        write_demo_scene(scene_dir, seed=args.seed)
+        print(f"generating the {args.scene} scene in {scene_dir}", file=sys.stderr)
+        if args.scene == "demo":
+            write_demo_scene(scene_dir, seed=args.seed)
+        else:
+            write_unbounded_scene(scene_dir, seed=args.seed)
     metrics = _train_and_report(scene_dir, out, args, config=config)
     _print_metrics(metrics, out)
 
@@ -289,6 +317,7 @@ def _folder(text: str) -> str:
 
 def _parser() -> argparse.ArgumentParser:
     from ngp_warp.export import add_export_parser
+    from ngp_warp.fit_many import add_fit_many_parser
     from ngp_warp.video_out import add_path_arguments
     from ngp_warp.viewer import add_view_parser
 
@@ -319,12 +348,16 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("scene", help="NeRF-synthetic folder or folder with an instant-ngp transforms.json")
     t.add_argument("--out", type=_folder, required=True, help="output folder")
     t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    t.add_argument("--gpus", type=_positive(int), default=1, help="data-parallel ranks through torchrun (README)")
     training(t)
     common(t)
     t.set_defaults(func=cmd_train)
 
     d = sub.add_parser("demo", help="generate the built-in procedural scene, train and evaluate on it")
     d.add_argument("--out", type=_folder, default="ngp-warp-demo", help="output folder (default ./ngp-warp-demo)")
+    d.add_argument("--scene", choices=("demo", "unbounded"), default="demo",
+                   help="demo: objects in a box, white background; unbounded: the 360° scene (objects "
+                        "on a ground plane to the horizon, learned background, contracted space)")
     training(d)
     common(d)
     d.set_defaults(func=cmd_demo)
@@ -346,6 +379,8 @@ def _parser() -> argparse.ArgumentParser:
     common(add_export_parser(sub, _positive(int), _positive(float)))
     common(add_view_parser(sub, _positive(int)))
 
+    add_fit_many_parser(sub, training, common, _folder, _positive(int))
+
     b = sub.add_parser("bench", help="kernel throughput table")
     b.add_argument("--quick", action="store_true", help="small sizes only")
     common(b)
@@ -355,6 +390,10 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if getattr(args, "gpus", 1) > 1:  # run this command line as that many torchrun ranks
+        from ngp_warp.distributed import launch_ranks
+
+        return launch_ranks(args, sys.argv[1:] if argv is None else argv)
     from ngp_warp.checkpoint import CheckpointError
     from ngp_warp.data import DataError
     from ngp_warp.memory_estimate import SettingsTooLarge
