@@ -26,6 +26,8 @@ from ngp_warp.model import RadianceModel
 
 BYTES_PER_SAMPLE = 512  # device memory one marched sample needs through march, density and pruning
 CPU_SAMPLE_BUDGET = 1 << 21  # marched samples per chunk on the CPU (a few hundred MB)
+CUDA_SAMPLE_CAP = 1 << 25  # marched samples per chunk on CUDA at most (16 GiB), so a first chunk that
+                            # marches 4x its guess still fits one hash-grid call (2^31 int32 items)
 MIN_CHUNK = 1 << 12  # rays
 
 
@@ -54,11 +56,11 @@ class ChunkSizer:
 
 def sample_budget(device: torch.device) -> int:
     """Marched samples one chunk may hold on ``device``: on CUDA half the free memory over
-    :data:`BYTES_PER_SAMPLE`, on the CPU :data:`CPU_SAMPLE_BUDGET`."""
+    :data:`BYTES_PER_SAMPLE`, at most :data:`CUDA_SAMPLE_CAP`; on the CPU :data:`CPU_SAMPLE_BUDGET`."""
     if device.type != "cuda":
         return CPU_SAMPLE_BUDGET
     free, _ = torch.cuda.mem_get_info(device)
-    return max(1 << 16, free // 2 // BYTES_PER_SAMPLE)
+    return max(1 << 16, min(CUDA_SAMPLE_CAP, free // 2 // BYTES_PER_SAMPLE))
 
 
 def subpixel_offsets(supersample: int) -> list[tuple[float, float]]:
