@@ -24,7 +24,8 @@ from pathlib import Path
 import torch
 
 from ngp_warp.checkpoint import load_trainer
-from ngp_warp.cli import CHECKPOINT, demo_config
+from ngp_warp.cli import CHECKPOINT
+from ngp_warp.demo import demo_config
 from ngp_warp.data import load_scene
 from ngp_warp.scene import write_demo_scene
 from ngp_warp.trainer import Trainer

@@ -180,52 +180,20 @@ def cmd_train(args) -> None:
         _print_metrics(metrics, Path(args.out))
 
 
-def demo_config(device: str, steps: int | None, seconds: float | None, seed: int):
-    """Training settings for the 100×100 demo scene. On the CPU a smaller table, a coarser
-    occupancy grid and a longer step keep 2 cores busy on useful samples; the finest hash-grid
-    level follows the images (104 cells here; measured on 2 cores after 150 s: 33.8 dB, against
-    32.7 dB with 512 cells, see benchmarks/RESULTS.md)."""
-    from ngp_warp.config import TrainConfig
-    from ngp_warp.field import FieldConfig
-
-    if steps is None and seconds is None:
-        seconds = 150.0 if device == "cpu" else 30.0
-    if device == "cpu":
-        return TrainConfig(steps=steps, seconds=seconds, seed=seed, target_samples=1 << 13,
-                           grid_resolution=64, steps_per_diagonal=512,
-                           field=FieldConfig(log2_hashmap_size=16))
-    return TrainConfig(steps=steps, seconds=seconds, seed=seed)
-
-
-def unbounded_demo_config(device: str, steps: int | None, seconds: float | None, seed: int):
-    """Training settings for the unbounded demo scene (100×100, 60 views; contraction, cone steps
-    and appearance codes are the scene's defaults). On the CPU as :func:`demo_config`, with a
-    step of 1/128 of the contracted grid's diagonal (0.22 world units inside the inner box; about
-    40 samples per ray, so that 2 cores train on a few hundred rays per step)."""
-    config = demo_config(device, steps, seconds, seed)
-    if device == "cpu":
-        config.steps_per_diagonal = 128
-    return config
-
-
 def cmd_demo(args) -> None:
+    from ngp_warp.demo import DEMOS
     from ngp_warp.run_folder import RunFolder
-    from ngp_warp.scene import write_demo_scene
-    from ngp_warp.scene_unbounded import write_unbounded_scene
 
     # every option is checked before the scene is generated
     device = _device(args.device)
-    make = demo_config if args.scene == "demo" else unbounded_demo_config
-    config = _with_settings(make(device, args.steps, args.seconds, args.seed), args)
+    demo = DEMOS[args.scene]
+    config = _with_settings(demo.config(device, args.steps, args.seconds, args.seed), args)
     RunFolder(Path(args.out), overwrite=args.overwrite, flags=(None, "--overwrite"))
     out = _writable_dir(Path(args.out))
-    scene_dir = out / ("scene" if args.scene == "demo" else "scene-unbounded")
+    scene_dir = out / demo.folder
     if not (scene_dir / "transforms_train.json").exists():
         print(f"generating the {args.scene} scene in {scene_dir}", file=sys.stderr)
-        if args.scene == "demo":
-            write_demo_scene(scene_dir, seed=args.seed)
-        else:
-            write_unbounded_scene(scene_dir, seed=args.seed)
+        demo.write(scene_dir, seed=args.seed)
     metrics = _train_and_report(scene_dir, out, args, config=config)
     _print_metrics(metrics, out)
 
@@ -355,7 +323,7 @@ def _parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="generate the built-in procedural scene, train and evaluate on it")
     d.add_argument("--out", type=_folder, default="ngp-warp-demo", help="output folder (default ./ngp-warp-demo)")
-    d.add_argument("--scene", choices=("demo", "unbounded"), default="demo",
+    d.add_argument("--scene", choices=("demo", "unbounded"), default="demo",  # ngp_warp.demo.DEMOS
                    help="demo: objects in a box, white background; unbounded: the 360° scene (objects "
                         "on a ground plane to the horizon, learned background, contracted space)")
     training(d)

@@ -114,6 +114,19 @@ def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_im
                             samples.t_starts, samples.t_ends, samples.ray_offsets, early_stop_eps)
 
 
+def _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images) -> None:
+    """render_rays' own arguments (the march checks the rays): one-line ValueErrors."""
+    if early_stop_eps < 0:
+        raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
+    if sample_capacity is not None and (sigma_fn is None or sample_capacity < 1):
+        raise ValueError("sample_capacity needs a sigma_fn and must be ≥ 1")
+    n_rays = rays_o.shape[0]
+    if ray_images is not None and (not isinstance(ray_images, torch.Tensor) or ray_images.dtype != torch.int64
+                                   or tuple(ray_images.shape) != (n_rays,) or ray_images.device != rays_o.device):
+        raise ValueError(f"ray_images must be None or a [{n_rays}] int64 tensor on {rays_o.device}, "
+                         f"got {getattr(ray_images, 'shape', type(ray_images).__name__)}")
+
+
 def render_rays(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
@@ -176,15 +189,7 @@ def render_rays(
         ``t_ends`` [S] and ``ray_offsets`` [N + 1] int32 (samples of ray r are
         ``ray_offsets[r] : ray_offsets[r+1]``; padding rows lie past ``ray_offsets[N]``).
     """
-    if early_stop_eps < 0:
-        raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
-    if sample_capacity is not None and (sigma_fn is None or sample_capacity < 1):
-        raise ValueError("sample_capacity needs a sigma_fn and must be ≥ 1")
-    n_rays = rays_o.shape[0]
-    if ray_images is not None and (not isinstance(ray_images, torch.Tensor) or ray_images.dtype != torch.int64
-                                   or tuple(ray_images.shape) != (n_rays,) or ray_images.device != rays_o.device):
-        raise ValueError(f"ray_images must be None or a [{n_rays}] int64 tensor on {rays_o.device}, "
-                         f"got {getattr(ray_images, 'shape', type(ray_images).__name__)}")
+    _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images)
     samples = ray_marching(rays_o, rays_d, grid, march, before_sync=before_sync, validate=validate,
                            unit_directions=True)
     if validate:

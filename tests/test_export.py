@@ -197,7 +197,7 @@ def test_export_command_refuses_bad_outputs_before_loading(tmp_path):
 def test_trained_demo_mesh_lies_on_the_analytic_surface(tmp_path):
     """1000 CPU steps on a small demo scene (300 gave a mean distance of 0.059, over the bound),
     meshed through the export path at the default threshold."""
-    from ngp_warp.cli import demo_config
+    from ngp_warp.demo import demo_config
     from ngp_warp.data import load_scene
     from ngp_warp.export import default_threshold
     from ngp_warp.scene import write_demo_scene
