@@ -1,4 +1,4 @@
-"""The ``ngp-warp`` command: train, eval, render, export, view, bench, demo."""
+"""The ``ngp-warp`` command: train, eval, render, export, view, process, fit-many, bench, demo."""
 
 from __future__ import annotations
 
@@ -286,6 +286,7 @@ def _folder(text: str) -> str:
 def _parser() -> argparse.ArgumentParser:
     from ngp_warp.export import add_export_parser
     from ngp_warp.fit_many import add_fit_many_parser
+    from ngp_warp.process import add_process_parser
     from ngp_warp.video_out import add_path_arguments
     from ngp_warp.viewer import add_view_parser
 
@@ -346,6 +347,7 @@ def _parser() -> argparse.ArgumentParser:
 
     common(add_export_parser(sub, _positive(int), _positive(float)))
     common(add_view_parser(sub, _positive(int)))
+    add_process_parser(sub)
 
     add_fit_many_parser(sub, training, common, _folder, _positive(int))
 

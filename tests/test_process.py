@@ -17,6 +17,7 @@ import imageio.v3 as iio  # noqa: E402
 from ngp_warp import process as P  # noqa: E402
 from ngp_warp import scene as demo  # noqa: E402
 from ngp_warp import video as V  # noqa: E402
+from ngp_warp.cli import main  # noqa: E402
 from ngp_warp.data_error import DataError  # noqa: E402
 
 N_VIEWS, SIZE = 40, 256
@@ -54,7 +55,7 @@ def _leftovers(parent):
 def test_process_poses_the_demo_scene(demo_photos, tmp_path, capsys):
     photos, c2w = demo_photos
     scene = tmp_path / "out" / "scene"
-    _cli([str(photos), "--out", str(scene), "--quiet", "--device", "cpu"])
+    assert main(["process", str(photos), "--out", str(scene), "--quiet", "--device", "cpu"]) == 0  # as a user runs it
     line = capsys.readouterr().out.splitlines()[0]
     registered = int(line.split()[1])
     assert line.startswith(f"registered {registered} of {N_VIEWS} images, mean reprojection error")
@@ -184,4 +185,12 @@ def test_frames_of_a_video_fill_the_scene_images(tmp_path, monkeypatch):
         P.process(video, tmp_path / "scene", P.ProcessConfig(frames=5, show_progress=False))
     assert len(seen["sizes"]) == 5 and seen["matcher"] == "sequential"
     assert set(seen["sizes"].values()) == {(64, 64)}
+    assert not (tmp_path / "scene").exists() and _leftovers(tmp_path) == []
+
+
+def test_the_ngp_warp_command_reports_bad_input_in_one_line(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    assert main(["process", str(tmp_path / "empty"), "--out", str(tmp_path / "scene"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("ngp-warp: error: ") and "Traceback" not in err[0], err
     assert not (tmp_path / "scene").exists() and _leftovers(tmp_path) == []
