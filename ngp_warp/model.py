@@ -41,6 +41,9 @@ class RadianceModel:
         self._stratified = dataclasses.replace(march, stratified=True)  # made once: no per-step objects
         self.early_stop_eps = early_stop_eps
         self.mlp_precision = mlp_precision
+        # the most marched samples per ray the last rendered view had: the next view's first
+        # chunk is sized by it (see ngp_warp.renderer.ChunkSizer), None before any view
+        self.view_samples_per_ray: float | None = None
 
     @classmethod
     def for_scene(cls, scene: Scene, field_config: FieldConfig, device: torch.device, *, grid_resolution: int,

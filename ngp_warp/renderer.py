@@ -36,6 +36,8 @@ class ChunkSizer:
 
     The first chunk holds ``budget / first_guess`` rays; after each chunk the next holds
     ``budget / (1.5 × the most samples per ray seen so far)``, at least :data:`MIN_CHUNK`.
+    :func:`render_view` guesses 1.5 × the last view's most samples per ray (64 for a model's
+    first view), so a model's later views usually take one chunk on a large GPU.
 
     Args:
         sample_budget: marched samples a chunk may hold.
@@ -133,7 +135,8 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     dist = None if distortion is None else distortion.to(dev, torch.float32).expand(n, 6)
     bg = torch.full((3,), float(background), device=dev)
     rgb, depth, opacity = torch.zeros(n, 3, device=dev), torch.zeros(n, device=dev), torch.zeros(n, device=dev)
-    sizer = ChunkSizer(sample_budget(dev)) if chunk is None else None
+    sizer = None if chunk is not None else ChunkSizer(
+        sample_budget(dev), 1.5 * model.view_samples_per_ray if model.view_samples_per_ray else 64.0)
     shifts = subpixel_offsets(supersample)
     counts = {"n_marched": 0, "n_shaded": 0}
     for dx, dy in shifts:
@@ -151,6 +154,8 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
                 if sizer is not None:
                     sizer.observe(hi - lo, out["n_marched"])
                 lo = hi
+    if sizer is not None:
+        model.view_samples_per_ray = sizer.samples_per_ray
     scale = 1.0 / (len(shifts) * spp)
     return {
         "rgb": rgb.mul_(scale).clamp_(0, 1).reshape(height, width, 3),

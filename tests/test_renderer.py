@@ -133,3 +133,24 @@ def test_chunk_sizer_follows_the_densest_chunk():
     assert sizer.next_size() == int((1 << 24) / (1.5 * 256))
     sizer.observe(10, 10**9)
     assert sizer.next_size() == 1 << 12
+
+
+def test_the_next_view_starts_from_the_last_views_samples_per_ray(trainer, monkeypatch):
+    c2w, intr = camera(trainer)
+    model = trainer.model
+    model.view_samples_per_ray = None
+    first = render_view(model, c2w, intr, W, H)
+    seen = model.view_samples_per_ray
+    assert seen is not None and seen >= first["n_marched"] / (W * H) > 0  # the densest chunk's count
+    guesses = []
+    real = ChunkSizer.__init__
+
+    def spy(self, budget, first_guess=64.0):
+        guesses.append(first_guess)
+        real(self, budget, first_guess)
+
+    monkeypatch.setattr(ChunkSizer, "__init__", spy)
+    second = render_view(model, c2w, intr, W, H)
+    assert guesses == [1.5 * seen]
+    for key in ("rgb", "opacity", "depth"):  # chunking does not change the image
+        torch.testing.assert_close(second[key], first[key], rtol=1e-5, atol=2e-5)
