@@ -4,7 +4,7 @@ packing, and renders (values and gradients) unchanged by it."""
 import pytest
 import torch
 
-from ngp_warp import MarchOptions, prune_samples, ray_marching, render_rays
+from ngp_warp import MarchOptions, prune_samples, render_rays
 from ngp_warp._reference import prune as prune_ref
 from ngp_warp.raymarch import RaySamples
 
