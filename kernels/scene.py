@@ -241,6 +241,16 @@ def trace(o: wp.vec3, d: wp.vec3) -> float:
     return result
 
 
+# Item i of a [V, H, W] launch: view v = i div (H W), row py, column px of pixel i mod (H W).
+@wp.func
+def view_pixel(i: int, width: int, height: int):
+    n_pix = width * height
+    v = i // n_pix
+    pix = i - v * n_pix
+    py = pix // width
+    return v, pix - py * width, py
+
+
 # The direction through image point (u, w) of view v (pixel units, OpenGL camera axes):
 # d = normalize(R ((u - cx)/fx, -(w - cy)/fy, -1)), R the first three columns of c2w[v].
 @wp.func
@@ -270,11 +280,7 @@ def render_views(
     out: wp.array2d(dtype=wp.float32),  # [V * H * W, 4] straight RGB, alpha
 ):
     i = first + wp.tid()
-    n_pix = width * height
-    v = i // n_pix
-    pix = i - v * n_pix
-    py = pix // width
-    px = pix - py * width
+    v, px, py = view_pixel(i, width, height)
     o = wp.vec3(c2w[v, 0, 3], c2w[v, 1, 3], c2w[v, 2, 3])
     inv_ss = 1.0 / float(ss)
     rgb = wp.vec3(0.0, 0.0, 0.0)

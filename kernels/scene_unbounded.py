@@ -18,7 +18,7 @@ import math
 
 import warp as wp
 
-from ngp_warp.kernels.scene import AMBIENT, DIFFUSE, LIGHT_DIR, parity, shade, trace, view_direction
+from ngp_warp.kernels.scene import AMBIENT, DIFFUSE, LIGHT_DIR, parity, shade, trace, view_direction, view_pixel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -218,11 +218,7 @@ def render_views(
     out: wp.array(dtype=wp.vec3),  # [V * H * W] RGB
 ):
     i = first + wp.tid()
-    n_pix = width * height
-    v = i // n_pix
-    pix = i - v * n_pix
-    py = pix // width
-    px = pix - py * width
+    v, px, py = view_pixel(i, width, height)
     o = wp.vec3(c2w[v, 0, 3], c2w[v, 1, 3], c2w[v, 2, 3])
     inv_ss = 1.0 / float(ss)
     total = wp.vec3(0.0, 0.0, 0.0)
