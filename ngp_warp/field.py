@@ -144,6 +144,16 @@ def _mlp(sizes: list[int]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def _mlp_no_grad(mlp: nn.Sequential, x: torch.Tensor, n_outputs: int | None = None) -> torch.Tensor:
+    """x [N, in] through :func:`_mlp`'s layers in x's dtype, for no-autograd passes: each hidden
+    layer's ReLU runs in its matmul's epilogue (``torch._addmm_activation``, cuBLASLt on CUDA),
+    and the last layer computes only its first ``n_outputs`` outputs (None: all). [N, n_outputs]."""
+    weights = [m.weight.to(x.dtype) for m in mlp if isinstance(m, nn.Linear)]
+    for w in weights[:-1]:
+        x = torch._addmm_activation(x.new_zeros(w.shape[0]), x, w.t())
+    return torch.mm(x, weights[-1][:n_outputs].t())
+
+
 class NGPField(nn.Module):
     """Hash-grid radiance field over an axis-aligned box.
 
@@ -194,35 +204,43 @@ class NGPField(nn.Module):
         return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters()) + codes
 
     def _grid_points(self, positions: torch.Tensor) -> torch.Tensor:
-        """World positions [N, 3] → the hash grid's coordinates: themselves, or C(x)."""
+        """World positions [N, 3] → the hash grid's coordinates [N, 3] float32: themselves, or C(x)."""
         if self.contraction is None:
             return positions
         return contract(positions.detach().float().contiguous(), self.contraction, self.aabb)
 
-    def _unit(self, positions: torch.Tensor) -> torch.Tensor:
-        """Positions mapped from the (contracted) box to [0, 1]^3, contiguous (the encoding's input)."""
+    def _unit(self, grid_points: torch.Tensor) -> torch.Tensor:
+        """Grid coordinates [N, 3] mapped from the (contracted) box to [0, 1]^3, contiguous (the
+        encoding's input)."""
         lo, hi = self.grid_aabb[:3], self.grid_aabb[3:]
-        return ((self._grid_points(positions) - lo) / (hi - lo)).contiguous()
+        return ((grid_points - lo) / (hi - lo)).contiguous()
 
     def _features(self, positions: torch.Tensor) -> torch.Tensor:
-        return self.encoding(self._unit(positions))
+        return self.encoding(self._unit(self._grid_points(positions)))
 
     def _geometry(self, positions: torch.Tensor) -> torch.Tensor:
         return self.density_mlp(self._features(positions))
 
-    def _log_density(self, positions: torch.Tensor) -> torch.Tensor:
-        """The density MLP's first output [N, 1], without autograd: each hidden layer's ReLU runs
-        in its matmul's epilogue (``torch._addmm_activation``, cuBLASLt on CUDA), and the last
-        layer computes only the one output used. In the autocast dtype when autocast is on."""
-        x = self._unit(positions)
+    def _geometry_no_grad(self, grid_points: torch.Tensor, n_outputs: int | None = None) -> torch.Tensor:
+        """The density MLP's first ``n_outputs`` outputs (None: all G) [N, n_outputs] at grid
+        coordinates [N, 3], through :func:`_mlp_no_grad`, in the autocast dtype when autocast is on
+        (bfloat16 features come rounded from the kernel: half the bytes, no cast)."""
+        x = self._unit(grid_points)
         autocast = x.is_cuda and torch.is_autocast_enabled("cuda")
         dtype = torch.get_autocast_dtype("cuda") if autocast else x.dtype
-        # bfloat16 features come rounded from the kernel: half the bytes, no cast
-        h = self.encoding.encode(x, dtype if dtype == torch.bfloat16 else torch.float32).to(dtype)
-        layers = [m.weight.to(dtype) for m in self.density_mlp if isinstance(m, nn.Linear)]
-        for w in layers[:-1]:
-            h = torch._addmm_activation(h.new_zeros(w.shape[0]), h, w.t())
-        return torch.mm(h, layers[-1][:1].t())
+        features = self.encoding.encode(x, dtype if dtype == torch.bfloat16 else torch.float32).to(dtype)
+        return _mlp_no_grad(self.density_mlp, features, n_outputs)
+
+    def _sigma_no_grad(self, h: torch.Tensor, grid_points: torch.Tensor) -> torch.Tensor:
+        """σ [N] float32 from the density MLP's output h [N, ≥1] (column 0, shifted by
+        :attr:`density_shift` in float32 when there is one) at grid coordinates [N, 3], zero
+        outside the box (:func:`density_from_log`)."""
+        log_sigma = h[:, :1]
+        if self.density_shift:
+            log_sigma = log_sigma.float() - self.density_shift
+        elif log_sigma.dtype not in (torch.float32, torch.bfloat16):  # e.g. float16 autocast
+            log_sigma = log_sigma.float()
+        return density_from_log(log_sigma.contiguous(), grid_points.contiguous(), self.grid_aabb)
 
     def _inside(self, positions: torch.Tensor) -> torch.Tensor:
         """[N] bool: inside the box (everywhere with a contraction)."""
@@ -240,17 +258,71 @@ class NGPField(nn.Module):
 
     def density(self, positions: torch.Tensor) -> torch.Tensor:
         """σ at positions [N, 3] float32 → [N] float32 (zero outside the box). On CUDA without
-        autograd, through :meth:`_log_density`'s fused matmuls (equal up to matmul rounding)
-        and :func:`density_from_log`."""
+        autograd, through :meth:`geometry`'s fused matmuls, computing the one output column σ
+        needs (equal up to matmul rounding)."""
         if positions.is_cuda and not torch.is_grad_enabled():
-            h = self._log_density(positions)
-            if h.dtype not in (torch.float32, torch.bfloat16):  # e.g. float16 autocast
-                h = h.float()
-            if self.density_shift:
-                h = h - self.density_shift
-            return density_from_log(h, self._grid_points(positions).contiguous(), self.grid_aabb)
+            grid_points = self._grid_points(positions)
+            return self._sigma_no_grad(self._geometry_no_grad(grid_points, 1), grid_points)
         h = self._geometry(positions)
         return self._sigma(h, positions)
+
+    @torch.no_grad()
+    def geometry(self, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """σ and the density MLP's whole output at positions, without autograd (inference).
+
+        Each hidden layer's ReLU runs in its matmul's epilogue (``torch._addmm_activation``,
+        cuBLASLt on CUDA); under CUDA autocast the MLP runs in its dtype, bfloat16 features
+        coming rounded from the hash-grid kernel.
+
+        Args:
+            positions: [N, 3] float32 world positions.
+
+        Returns:
+            (sigma [N] float32, zero outside the box, as :meth:`density`; h [N, G] in the
+            autocast dtype, else float32, G = ``config.geo_features``: :meth:`colour`'s input).
+        """
+        if positions.ndim != 2 or positions.shape[1] != 3 or positions.dtype != torch.float32:
+            raise ValueError(f"positions must be [N, 3] float32, got {tuple(positions.shape)} {positions.dtype}")
+        grid_points = self._grid_points(positions)
+        h = self._geometry_no_grad(grid_points)
+        return self._sigma_no_grad(h, grid_points), h
+
+    @torch.no_grad()
+    def colour(self, h: torch.Tensor, directions: torch.Tensor,
+               appearance_code: torch.Tensor | None = None) -> torch.Tensor:
+        """The colour MLP without autograd (inference), as :meth:`forward` computes it.
+
+        Args:
+            h: [N, G] density MLP outputs from :meth:`geometry` (the MLP runs in their dtype).
+            directions: [N, 3] float32 unit view directions.
+            appearance_code: [A] float32 code for every row (see :meth:`appearance_code`);
+                None: the mean training code.
+
+        Returns:
+            rgb [N, 3] float32 in (0, 1).
+        """
+        n, g = h.shape[0], self.config.geo_features
+        if h.ndim != 2 or h.shape[1] != g or tuple(directions.shape) != (n, 3):
+            raise ValueError(f"colour needs h [N, {g}] and directions [N, 3], "
+                             f"got {tuple(h.shape)} and {tuple(directions.shape)}")
+        code = self.appearance_code(appearance_code)
+        codes = [] if code is None else [code.expand(n, -1)]
+        return self._colour_head(h, directions, codes, fused=True)
+
+    def appearance_code(self, code: torch.Tensor | None) -> torch.Tensor | None:
+        """The [A] float32 code to colour with, on the field's device: ``code`` itself, or the
+        mean training code when None; None for a field without appearance codes. ValueError
+        (one line) for a code of the wrong shape, or a code given to a field without codes."""
+        if self.appearance is None:
+            if code is not None:
+                raise ValueError("appearance_code given, but this field has no appearance codes (appearance_dim 0)")
+            return None
+        if code is None:
+            return self.appearance.weight.mean(0)
+        a = self.appearance.embedding_dim
+        if not isinstance(code, torch.Tensor) or tuple(code.shape) != (a,) or not code.is_floating_point():
+            raise ValueError(f"appearance_code must be a [{a}] float tensor, got {getattr(code, 'shape', code)!r}")
+        return code.to(self.aabb.device, torch.float32)
 
     def appearance_codes(self, image_indices: torch.Tensor | None, n: int, device) -> list[torch.Tensor]:
         """[] without appearance codes, else [[n, A]]: the codes of ``image_indices`` ([n] int64
@@ -270,7 +342,15 @@ class NGPField(nn.Module):
         appearance code; ignored without appearance codes)."""
         h = self._geometry(positions)
         sigma = self._sigma(h, positions)
+        codes = self.appearance_codes(image_indices, h.shape[0], h.device)
+        return sigma, self._colour_head(h, directions, codes, fused=False)
+
+    def _colour_head(self, h: torch.Tensor, directions: torch.Tensor, codes: list[torch.Tensor],
+                     fused: bool) -> torch.Tensor:
+        """rgb [N, 3] float32 = sigmoid(MLP_c([h, SH(d), code])) from h [N, G], unit directions
+        [N, 3] float32 and codes ([] or [[N, A]]), in h's dtype: through the modules (autograd)
+        or, ``fused``, through :func:`_mlp_no_grad`."""
         sh = spherical_harmonics_deg4(directions).to(h.dtype)
-        codes = [c.to(h.dtype) for c in self.appearance_codes(image_indices, h.shape[0], h.device)]
-        rgb = torch.sigmoid(self.color_mlp(torch.cat([h, sh, *codes], dim=-1)).float())
-        return sigma, rgb
+        x = torch.cat([h, sh, *[c.to(h.dtype) for c in codes]], dim=-1)
+        out = _mlp_no_grad(self.color_mlp, x) if fused else self.color_mlp(x)
+        return torch.sigmoid(out.float())

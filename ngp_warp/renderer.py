@@ -6,10 +6,13 @@ rendered are the field's own: a trainer swaps its weight average in first
 What makes it fast, next to a training render of the same rays:
 
 * no autograd at all (``torch.inference_mode``), the field in eval mode;
-* the occupancy grid skips empty space (the march's DDA), and each chunk's marched samples get
-  a density-only pass first; only the samples in front of the early-termination point
-  (transmittance ≥ the model's ``early_stop_eps``) go through the colour network
-  (:func:`ngp_warp.prune_samples`, the ``sigma_fn`` of :func:`ngp_warp.render_rays`);
+* the occupancy grid skips empty space (the march's DDA), and each marched sample is encoded
+  once: the hash grid and density MLP run on every marched sample
+  (:meth:`~ngp_warp.field.NGPField.geometry`, σ and the MLP's whole output h), and only the
+  samples in front of the early-termination point (transmittance ≥ the model's
+  ``early_stop_eps``, :func:`ngp_warp.prune_samples`) take their h on through the colour
+  network (:meth:`~ngp_warp.field.NGPField.colour`). (A training render's ``sigma_fn``
+  pruning encodes the kept samples twice, once per pass.)
 * the MLPs in the model's precision (bf16 on GPUs, :meth:`RadianceModel.precision`);
 * rays are generated once per image, the outputs are written into buffers allocated once, and
   the chunks are as large as memory allows: their size adapts to the samples per ray of the
@@ -19,10 +22,15 @@ What makes it fast, next to a training render of the same rays:
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from ngp_warp.cameras import generate_rays
+from ngp_warp.composite import composite_packed
 from ngp_warp.model import RadianceModel
+from ngp_warp.prune import prune_samples
+from ngp_warp.raymarch import RaySamples, ray_marching
 
 BYTES_PER_SAMPLE = 512  # device memory one marched sample needs through march, density and pruning
 CPU_SAMPLE_BUDGET = 1 << 21  # marched samples per chunk on the CPU (a few hundred MB)
@@ -87,18 +95,51 @@ def _check_camera(c2w, intrinsics, distortion, width: int, height: int, spp: int
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
 
 
+def _marched_rows(marched_offsets: torch.Tensor, kept: RaySamples) -> torch.Tensor:
+    """The row among the marched samples of each kept sample, [K] int64. prune_samples keeps a
+    prefix of each ray's samples (front to back, no capacity: no padding), so kept row j of ray
+    r is marched row ``marched_offsets[r] + j - kept.ray_offsets[r]``.
+
+    marched_offsets: [n_rays + 1] int32 offsets of the marched samples. kept: the pruned samples.
+    """
+    shift = (marched_offsets[:-1] - kept.ray_offsets[:-1]).long()
+    return shift[kept.ray_indices] + torch.arange(kept.n_samples, device=shift.device)
+
+
 def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor,
-                  stratified: bool) -> dict:
-    """One chunk of rays: march, prune by a density pass, shade the rest (see the module)."""
-    field = model.field
+                  stratified: bool, appearance_code: torch.Tensor | None) -> dict:
+    """One chunk of N rays (see the module): march, σ and h of every marched sample, prune, the
+    colour MLP on the kept samples' h, composite over ``bg`` [3].
+
+    Returns ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] float32 and host ints
+    ``n_marched``, ``n_shaded`` (samples through the colour MLP).
+    """
+    field, eps, n_rays = model.field, model.early_stop_eps, rays_o.shape[0]
+    march = dataclasses.replace(model.march, stratified=stratified)
+    samples = ray_marching(rays_o, rays_d, model.grid, march, validate=False)
+    out = {"rgb": bg.expand(n_rays, 3).clone(), "opacity": torch.zeros(n_rays, device=rays_o.device),
+           "depth": torch.zeros(n_rays, device=rays_o.device), "n_marched": samples.n_samples, "n_shaded": 0}
+    if samples.n_samples == 0:
+        return out
     with model.precision():
-        return model.render(rays_o, rays_d, field, background=bg, stratified=stratified, sigma_fn=field.density)
+        sigma, h = field.geometry(samples.positions)
+        kept = prune_samples(samples, sigma, eps).samples
+        out["n_shaded"] = kept.n_samples
+        if kept.n_samples == 0:  # early_stop_eps > 1: nothing composites
+            return out
+        rows = _marched_rows(samples.ray_offsets, kept)
+        rgbs = field.colour(h[rows], kept.directions, appearance_code)
+    rgb, out["opacity"], out["depth"], _ = composite_packed(sigma[rows], rgbs, kept.t_starts, kept.t_ends,
+                                                            kept.ray_offsets, eps)
+    out["rgb"] = rgb + bg * (1.0 - out["opacity"])[:, None]
+    return out
 
 
 @torch.inference_mode()
 def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, *,
                 distortion: torch.Tensor | None = None, fisheye: bool = False, background: float = 1.0,
-                chunk: int | None = None, spp: int = 1, supersample: int = 1) -> dict:
+                chunk: int | None = None, spp: int = 1, supersample: int = 1,
+                appearance_code: torch.Tensor | None = None) -> dict:
     """Render one camera with the model's field in eval mode.
 
     Each pixel is the mean of ``supersample``² rays through its sub-pixel centres (the grid of
@@ -115,6 +156,8 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
         background: grey level blended behind the samples.
         chunk: rays per chunk; None sizes chunks to the device's memory (:class:`ChunkSizer`).
             The image does not depend on it.
+        appearance_code: [A] float32 appearance code for every ray (e.g. one fitted to a test
+            view); None: the mean training code. Only for fields with appearance codes.
 
     Returns:
         dict with ``rgb`` [H, W, 3] float32 in [0, 1], ``depth`` and ``opacity`` [H, W] float32
@@ -124,6 +167,7 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     _check_camera(c2w, intrinsics, distortion, width, height, spp, supersample, fisheye)
     if chunk is not None and not (isinstance(chunk, int) and chunk >= 1):
         raise ValueError(f"chunk must be None or a positive integer, got {chunk!r}")
+    code = model.field.appearance_code(appearance_code)
     if model.field.training:
         model.field.eval()
     dev = model.device
@@ -145,12 +189,12 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
             lo = 0
             while lo < n:
                 hi = min(n, lo + (chunk or sizer.next_size()))
-                out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], bg, spp > 1)
+                out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], bg, spp > 1, code)
                 rgb[lo:hi] += out["rgb"]
                 depth[lo:hi] += out["depth"]
                 opacity[lo:hi] += out["opacity"]
                 counts["n_marched"] += out["n_marched"]
-                counts["n_shaded"] += out["n_samples"]
+                counts["n_shaded"] += out["n_shaded"]
                 if sizer is not None:
                     sizer.observe(hi - lo, out["n_marched"])
                 lo = hi

@@ -8,6 +8,7 @@ renderer (:mod:`ngp_warp.renderer`).
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -71,7 +72,9 @@ class Trainer:
         self.gradient_reduction: Callable[[], None] | None = None  # after every backward, on every rank
         self.shared_clock: Callable[[int], float] | None = None  # step → training seconds all ranks agree on
         self.phases = StepPhases(
-            sample_batch=self.sample_batch, grid_update=self.grid.update, render=self._render_batch,
+            sample_batch=self.sample_batch, render=self._render_batch,
+            grid_update=functools.partial(self.grid.update, occ_threshold=cfg.occupancy_threshold,
+                                          ema_decay=cfg.occupancy_decay),
             density=self.training_field.density, field=self.training_field,
             optimizer_update=self.weights.flush, loss=ray_loss, distortion=distortion_loss_packed,
             backward=backward)
@@ -221,17 +224,19 @@ class Trainer:
     # -- inference -------------------------------------------------------------------------
     def render_image(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                      distortion: torch.Tensor | None = None, background: float = 1.0, chunk: int | None = None,
-                     spp: int = 1, fisheye: bool = False, supersample: int | None = None) -> dict:
+                     spp: int = 1, fisheye: bool = False, supersample: int | None = None,
+                     appearance_code: torch.Tensor | None = None) -> dict:
         """:func:`ngp_warp.renderer.render_view` of one camera with the weight average (when
         on) and the training pixels' sub-pixel grid: [3, 4] c2w, [4] fx fy cx cy, optional [6]
         k1 k2 k3 k4 p1 p2 distortion (``fisheye``: OpenCV's fisheye lens) → rgb [H, W, 3],
         depth/opacity [H, W]. ``spp`` > 1 averages that many renders with jittered sample
         offsets along each ray; ``chunk`` None sizes the ray chunks to memory; ``supersample``
-        overrides the sub-pixel grid (1: one ray per pixel, for previews)."""
+        overrides the sub-pixel grid (1: one ray per pixel, for previews); ``appearance_code``
+        [A] float32 colours every ray (None: the mean training code)."""
         with self.weights.averaged_in_field():
             return render_view(self.model, c2w, intrinsics, width, height, distortion=distortion, fisheye=fisheye,
                                background=background, chunk=chunk, spp=spp,
-                               supersample=supersample or self.config.supersample)
+                               supersample=supersample or self.config.supersample, appearance_code=appearance_code)
 
     # -- state -----------------------------------------------------------------------------
     def state_dict(self) -> dict:

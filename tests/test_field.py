@@ -68,17 +68,64 @@ def _small_field(device="cpu"):
     return field
 
 
-def test_fused_log_density_matches_the_density_mlp():
-    """The no-grad density path (fused ReLU epilogues, one output column) equals the MLP's first
-    output, with some ReLUs active and some not."""
+def test_fused_density_mlp_matches_the_module_mlp():
+    """The no-grad density MLP (fused ReLU epilogues) equals the modules' output, all G columns
+    and the first alone (density's CUDA path), with some ReLUs active and some not."""
     field = _small_field()
     x = torch.rand(500, 3) * 2 - 1
     with torch.no_grad():
-        want = field._geometry(x)[:, :1]
+        want = field._geometry(x)
         hidden = field.density_mlp[1](field.density_mlp[0](field._features(x)))
-        got = field._log_density(x)
-    assert got.shape == (500, 1) and 0.1 < (hidden > 0).float().mean() < 0.9
+        got = field._geometry_no_grad(x)
+        first = field._geometry_no_grad(x, 1)
+    assert got.shape == (500, 16) and first.shape == (500, 1) and 0.1 < (hidden > 0).float().mean() < 0.9
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(first, want[:, :1], rtol=1e-5, atol=1e-6)
+
+
+def _field_with(contraction, appearance_dim):
+    cfg = FieldConfig(n_levels=4, log2_hashmap_size=12, finest_resolution=64.0, hidden=16,
+                      appearance_dim=appearance_dim)
+    field = NGPField(torch.tensor([-1.0, -1, -1, 1, 1, 1]), cfg, contraction=contraction, n_images=3)
+    torch.nn.init.uniform_(field.encoding.params, -1.0, 1.0)
+    if appearance_dim:
+        torch.nn.init.normal_(field.appearance.weight, std=1.0)  # codes that change the colour
+    return field
+
+
+@pytest.mark.parametrize("contraction", [None, "l2"])
+@pytest.mark.parametrize("appearance_dim", [0, 4])
+def test_geometry_then_colour_equals_forward(contraction, appearance_dim):
+    field = _field_with(contraction, appearance_dim)
+    x = torch.randn(600, 3) * (3.0 if contraction else 0.7)  # some outside the box
+    d = torch.nn.functional.normalize(torch.randn(600, 3), dim=-1)
+    with torch.no_grad():
+        sigma_want, rgb_want = field(x, d)
+    sigma, h = field.geometry(x)
+    assert sigma.dtype == torch.float32 and h.shape == (600, 16) and sigma.shape == (600,)
+    assert (sigma > 0).any() and (contraction is not None or (sigma == 0).any())
+    torch.testing.assert_close(sigma, sigma_want, rtol=1e-5, atol=1e-7)
+    rgb = field.colour(h, d)
+    assert rgb.dtype == torch.float32 and rgb.shape == (600, 3)
+    torch.testing.assert_close(rgb, rgb_want, rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(field.colour(h, -d), rgb_want, atol=1e-3)  # the comparison can fail
+    if appearance_dim:
+        with torch.no_grad():
+            second = field(x, d, torch.full((600,), 2))[1]
+        torch.testing.assert_close(field.colour(h, d, field.appearance.weight[2]), second, rtol=1e-5, atol=1e-6)
+        assert (second - rgb_want).abs().max() > 1e-3  # image 2's code is not the mean one
+
+
+def test_appearance_code_is_checked():
+    with pytest.raises(ValueError, match="no appearance codes"):
+        _field_with(None, 0).appearance_code(torch.zeros(4))
+    field = _field_with(None, 4)
+    with pytest.raises(ValueError, match=r"\[4\] float"):
+        field.appearance_code(torch.zeros(3))
+    torch.testing.assert_close(field.appearance_code(None), field.appearance.weight.mean(0))
+    assert _field_with(None, 0).appearance_code(None) is None
+    with pytest.raises(ValueError, match="colour needs h"):
+        field.colour(torch.zeros(5, 15), torch.zeros(5, 3))
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
