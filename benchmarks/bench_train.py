@@ -33,6 +33,9 @@ from ngp_warp.evaluate import iter_test_renders
 from ngp_warp.metrics import psnr
 from ngp_warp.trainer import Trainer
 
+sys.path.insert(0, str(Path(__file__).parent))
+from grid_stats import format_stats, sample_stats  # noqa: E402
+
 
 def _commit() -> str:
     """``NGP_WARP_COMMIT`` when set (trees copied without .git), else git's short HEAD."""
@@ -87,10 +90,12 @@ def warm_up(scene, cfg: TrainConfig, device: str) -> None:
     gc.collect()  # the captured graph holds a reference cycle: free its memory now
 
 
-def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, spp: int = 1) -> list[dict]:
+def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, spp: int = 1,
+                       grid_stats: bool = False) -> list[dict]:
     """Train to each mark (seconds of training wall-clock), stopping the clock to evaluate; the
     learning-rate schedule runs over ``trainer.config.seconds``. ``spp`` > 1 also scores renders
-    averaged over that many points per pixel (``psnr_spp``)."""
+    averaged over that many points per pixel (``psnr_spp``); ``grid_stats`` adds samples per ray
+    and the grid's occupancy (:func:`grid_stats.sample_stats`) as ``grid``."""
     schedule_seconds = trainer.config.seconds
     dev = trainer.device
     rows = []
@@ -116,12 +121,16 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, sp
         if spp > 1:
             row["psnr_spp"] = float(np.mean([psnr(out["rgb"], gt) for _, out, gt in
                                              iter_test_renders(trainer, every=test_every, spp=spp)]))
+        if grid_stats:
+            row["grid"] = sample_stats(trainer)
         row["eval_seconds"] = time.perf_counter() - start
         rows.append(row)
         print(f"{mark:6.0f} s  step {row['steps']:6d}  PSNR {row['psnr']:6.2f} dB  {ms:6.2f} ms/step  "
               f"rays {row['rays_per_step']:8.0f}  samples {row['samples_per_step']:9.0f}"
               f"  marched {row['marched_per_step']:9.0f}"
               + (f"  PSNR at {spp} spp {row['psnr_spp']:6.2f} dB" if spp > 1 else ""), flush=True)
+        if grid_stats:
+            print(f"        {format_stats(row['grid'])}", flush=True)
     return rows
 
 
@@ -139,6 +148,8 @@ def main() -> None:
     ap.add_argument("--schedule-per-checkpoint", action="store_true",
                     help="train a fresh run per checkpoint, each with its schedule over that many seconds "
                          "(what a user who trains for that long gets), instead of one run evaluated along the way")
+    ap.add_argument("--grid-stats", action="store_true",
+                    help="also report samples per ray (median, mean) and the grid's occupancy per cascade")
     ap.add_argument("--out", default="bench_train")
     args = ap.parse_args()
 
@@ -160,7 +171,7 @@ def main() -> None:
         dev = trainer.device
         if not rows and dev.type == "cuda":
             torch.cuda.reset_peak_memory_stats(dev)
-        rows += train_and_evaluate(trainer, run_marks, args.test_every)
+        rows += train_and_evaluate(trainer, run_marks, args.test_every, grid_stats=args.grid_stats)
     peak = torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU"
     out = Path(args.out)

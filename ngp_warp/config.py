@@ -35,6 +35,9 @@ class TrainConfig:
     contraction: str | None = "auto"    # "l2" | "linf" | None: unbounded space contracted (mip-NeRF 360,
                                         # nerfstudio's L∞); "auto": the scene's (scene_defaults)
     early_stop_eps: float = 1e-4
+    occupancy_threshold: float = 0.01   # a grid cell is occupied while its optical thickness over one
+                                        # step, σ·step, exceeds min(this, the mean): instant-ngp's 0.01
+    occupancy_decay: float = 0.95       # each grid refresh (every 16 steps) scales old estimates by this
     mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
                                         # field's graphs, "tf32" matmuls, or "fp32"
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
@@ -59,9 +62,11 @@ class TrainConfig:
                 raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {value!r}")
         check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
                                      "steps_per_diagonal"),
-                       positive=("seconds", "lr"),
+                       positive=("seconds", "lr", "occupancy_threshold"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"),
                        optional=("steps", "seconds", "target_samples", "cone_angle"))
+        if not 0.0 <= self.occupancy_decay < 1.0:
+            raise ValueError(f"occupancy_decay must be in [0, 1), got {self.occupancy_decay!r}")
         if not 0.0 <= self.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
         if type(self.seed) is not int or not 0 <= self.seed < 2**63:

@@ -232,7 +232,8 @@ def test_unset_supersample_follows_the_device(device, sub):
 
 
 @pytest.mark.parametrize("setting", ["steps=0", "seconds=-1", "target_samples=0", "grid_resolution=0", "lr=-1e-3",
-                                     "cone_angle=-0.1", "weight_average=1", "supersample=0", "mlp_precision=fp16"])
+                                     "cone_angle=-0.1", "weight_average=1", "supersample=0", "mlp_precision=fp16",
+                                     "occupancy_threshold=0", "occupancy_decay=1", "occupancy_decay=-0.5"])
 def test_config_check_names_the_setting_out_of_range(setting):
     cfg = apply_overrides(TrainConfig(), [setting])
     with pytest.raises(ValueError, match=setting.split("=")[0]):
@@ -248,6 +249,20 @@ def test_config_check_names_the_setting_out_of_range(setting):
 def test_config_check_refuses_wrong_types_and_field_sizes(bad):
     with pytest.raises(ValueError, match="must be"):
         TrainConfig(**bad).check()
+
+
+def test_occupancy_settings_reach_the_grid(tiny_scene):
+    """A higher occupancy threshold leaves fewer cells occupied after the same steps (one step with a
+    refresh, from the same weights: the grid's own update rule, min(threshold, mean), decides)."""
+    occupied = {}
+    for threshold in (1e-4, 10.0):
+        cfg = tiny_config(1)
+        cfg.occupancy_threshold, cfg.occupancy_decay = threshold, 0.5
+        trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+        trainer.step()
+        occupied[threshold] = int(trainer.grid.occupied().sum())
+        assert float(trainer.grid.threshold) <= threshold
+    assert occupied[10.0] < occupied[1e-4]
 
 
 @pytest.mark.parametrize("prune", [True, False])
