@@ -1,5 +1,7 @@
-"""The inference renderer: equal to a plain render of the same rays (no pruning, one chunk),
-independent of the chunk size, lenses, input checks, and training after a render."""
+"""The inference renderer: equal to a plain render of the same rays (no pruning, one chunk) and
+to the two-pass pruned render (density pass, then the whole field on the kept samples), which it
+replaces by one encoding of each marched sample; independent of the chunk size; lenses,
+appearance codes, input checks, and training after a render."""
 
 import copy
 
@@ -9,9 +11,11 @@ import torch
 from ngp_warp.cameras import generate_rays
 from ngp_warp.config import TrainConfig
 from ngp_warp.data import load_scene
-from ngp_warp.field import FieldConfig
+from ngp_warp.field import FieldConfig, NGPField
 from ngp_warp.model import RadianceModel
-from ngp_warp.renderer import ChunkSizer, render_view
+from ngp_warp.prune import prune_samples
+from ngp_warp.raymarch import ray_marching
+from ngp_warp.renderer import ChunkSizer, _marched_rows, render_view
 from ngp_warp.scene import write_demo_scene
 from ngp_warp.trainer import Trainer
 
@@ -39,6 +43,14 @@ def plain_render(model, rays_o, rays_d, background: float) -> dict:
     """Every marched sample through the whole field, no pruning, one call."""
     with torch.no_grad():
         return model.render(rays_o, rays_d, model.field, background=torch.full((3,), background))
+
+
+def pruned_render(model, rays_o, rays_d, background: float) -> dict:
+    """The previous inference path: a density pass prunes, then the whole field (its hash grid
+    and density MLP again) on the kept samples."""
+    with torch.no_grad():
+        return model.render(rays_o, rays_d, model.field, background=torch.full((3,), background),
+                            sigma_fn=model.field.density)
 
 
 def pixel_rays(c2w, intr, distortion=None, fisheye=False):
@@ -69,10 +81,14 @@ def test_render_view_equals_a_plain_render_and_shades_fewer_samples(trainer, den
     field = denser_field(trainer.field) if dense else trainer.field
     model = RadianceModel(field, trainer.grid, trainer.model.march)
     out = render_view(model, c2w, intr, W, H, background=0.25)
-    want = plain_render(model, *pixel_rays(c2w, intr), 0.25)
+    rays = pixel_rays(c2w, intr)
+    want = plain_render(model, *rays, 0.25)
     assert float(want["opacity"].max()) > 0.5  # not an empty view
     assert_same_image(out, want)
-    assert out["n_marched"] == want["n_samples"]
+    two_pass = pruned_render(model, *rays, 0.25)
+    assert_same_image(out, two_pass)
+    assert out["n_marched"] == want["n_samples"] == two_pass["n_marched"]
+    assert out["n_shaded"] == two_pass["n_samples"]
     assert 0 < out["n_shaded"] <= out["n_marched"]
     if dense:  # opaque rays end early: their samples behind it skip the colour pass (after 60
         assert out["n_shaded"] < 0.8 * out["n_marched"]  # steps hardly any ray is that opaque)
@@ -154,3 +170,54 @@ def test_the_next_view_starts_from_the_last_views_samples_per_ray(trainer, monke
     assert guesses == [1.5 * seen]
     for key in ("rgb", "opacity", "depth"):  # chunking does not change the image
         torch.testing.assert_close(second[key], first[key], rtol=1e-5, atol=2e-5)
+
+
+def test_kept_samples_take_their_rows_of_the_marched_samples(trainer):
+    """The gather from marched to kept samples: kept samples of a ray are a prefix of its
+    marched ones, and rays behind pruned samples start later in the kept rows."""
+    model = RadianceModel(denser_field(trainer.field), trainer.grid, trainer.model.march)
+    samples = ray_marching(*pixel_rays(*camera(trainer)), model.grid, model.march)
+    with torch.no_grad():
+        sigma = model.field.density(samples.positions)
+    kept = prune_samples(samples, sigma, model.early_stop_eps).samples
+    rows = _marched_rows(samples.ray_offsets, kept)
+    assert 0 < kept.n_samples < 0.8 * samples.n_samples
+    for name in ("ray_indices", "t_starts", "t_ends", "positions", "directions"):
+        assert torch.equal(getattr(samples, name)[rows], getattr(kept, name))
+    naive = torch.arange(kept.n_samples)  # a wrong gather: the first kept rows, no shift
+    assert not torch.equal(samples.t_starts[naive], kept.t_starts)
+
+
+@pytest.fixture(scope="module")
+def coded_model(trainer):
+    """A random field with appearance codes (dense enough to see) on the trained grid."""
+    cfg = FieldConfig(n_levels=8, log2_hashmap_size=14, finest_resolution=128.0, hidden=32, appearance_dim=4)
+    torch.manual_seed(3)
+    field = NGPField(trainer.field.aabb, cfg, n_images=5)
+    with torch.no_grad():
+        field.encoding.params.uniform_(-1.0, 1.0)
+        field.appearance.weight.normal_(0.0, 1.0)
+        field.density_mlp[-1].weight[0] += 1.0
+    return RadianceModel(field, trainer.grid, trainer.model.march)
+
+
+def test_appearance_codes_colour_the_view(trainer, coded_model):
+    c2w, intr = camera(trainer)
+    mean = render_view(coded_model, c2w, intr, W, H, background=0.5)
+    rays = pixel_rays(c2w, intr)
+    assert float(mean["opacity"].max()) > 0.5
+    assert_same_image(mean, pruned_render(coded_model, *rays, 0.5))  # None: the mean training code
+    explicit = render_view(coded_model, c2w, intr, W, H, background=0.5,
+                           appearance_code=coded_model.field.appearance.weight.mean(0))
+    torch.testing.assert_close(explicit["rgb"], mean["rgb"], rtol=0, atol=1e-6)
+    other = render_view(coded_model, c2w, intr, W, H, background=0.5, appearance_code=torch.tensor([10.0, -10, 5, 0]))
+    assert (other["rgb"] - mean["rgb"]).abs().max() > 1e-2
+    torch.testing.assert_close(other["opacity"], mean["opacity"])  # the code changes colour only
+
+
+def test_appearance_code_mistakes_are_refused(trainer, coded_model):
+    c2w, intr = camera(trainer)
+    with pytest.raises(ValueError, match=r"\[4\] float"):
+        render_view(coded_model, c2w, intr, W, H, appearance_code=torch.zeros(5))
+    with pytest.raises(ValueError, match="no appearance codes"):  # through Trainer.render_image
+        trainer.render_image(c2w, intr, W, H, appearance_code=torch.zeros(4))
