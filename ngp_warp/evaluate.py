@@ -1,7 +1,9 @@
-"""Evaluation (PSNR, SSIM and LPIPS when available, on the test split, white background), renders and depth maps."""
+"""Evaluation (PSNR, SSIM and LPIPS when available, on the test split, white background; with
+appearance codes on the right half of each view, its code fitted on the left), renders and depth maps."""
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -11,6 +13,7 @@ import torch
 
 from tqdm import tqdm
 
+from ngp_warp.appearance_fit import FIT_ITERATIONS, fit_appearance_code, right_half
 from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.lpips import lpips_or_reason, lpips_summary
 from ngp_warp.metrics import SSIM_WINDOW, psnr, ssim
@@ -41,44 +44,70 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
 
-def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1):
+def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1, fit_appearance: bool = False):
     """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th view of
     ``split`` (default: the test split), rendered (``spp`` as in ``Trainer.render_image``) and
     composited on white; where the field learns the background (``Trainer.black_background``:
     unbounded scenes, opaque images) the renders are composited on black. With appearance codes
-    every view is rendered with the mean code of the training images."""
+    every view is rendered with the mean code of the training images, or, with
+    ``fit_appearance``, with the code fitted on the left half of its ground truth
+    (:func:`~ngp_warp.appearance_fit.fit_appearance_code`, in the render dict as
+    ``appearance_code`` [A]): score such a view on the right half only
+    (:func:`~ngp_warp.appearance_fit.right_half`)."""
     split = trainer.scene.test if split is None else split
     white = torch.ones(3, device=trainer.device)
     background = 0.0 if trainer.black_background else 1.0
+    fit = fit_appearance and trainer.field.appearance is not None
     for i in range(0, len(split.names), every):
-        out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
-                                   distortion=split.distortion[i] if split.has_distortion else None,
-                                   background=background, spp=spp, fisheye=split.fisheye)
-        yield split.names[i], out, composite_on(split.images[i].to(trainer.device), white)
+        camera = dict(c2w=split.c2w[i], intrinsics=split.intrinsics[i], width=split.width, height=split.height,
+                      distortion=split.distortion[i] if split.has_distortion else None, fisheye=split.fisheye)
+        gt = composite_on(split.images[i].to(trainer.device), white)
+        code = fit_appearance_code(trainer, **camera, image=gt, background=background) if fit else None
+        out = trainer.render_image(**camera, background=background, spp=spp, appearance_code=code)
+        if fit:
+            out["appearance_code"] = code
+        yield split.names[i], out, gt
+
+
+def _scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[dict, str]:
+    """PSNR, SSIM (None below an 11-pixel window) and LPIPS (None and the reason when it cannot
+    be computed) of rgb against gt ([H, W, 3] float32 in [0, 1])."""
+    s = ssim(rgb, gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
+    lpips, lpips_note = lpips_or_reason(rgb, gt)
+    return {"psnr": psnr(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
 
 
 def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
-    """Render every test view on white, score it, write renders/ depth/ and metrics.json.
+    """Render every test view, score it, write renders/ depth/ and metrics.json.
 
-    With per-image appearance codes a test view has no code of its own: it is rendered, and
-    scored on the whole image, with the mean of the training images' codes (metrics.json says
-    ``"appearance": "mean embedding"``; no per-view code is fitted)."""
+    With per-image appearance codes a test view has no code of its own: it is rendered with the
+    code fitted on the left half of its image and scored (psnr, ssim, lpips) on the right half,
+    which the fit did not see, as nerfstudio does; its whole-image PSNR with the mean training
+    code is kept as ``psnr_mean_code`` (comparable with earlier runs), and metrics.json's
+    ``appearance`` says so. renders/ holds the fitted code's whole images."""
     out_dir = Path(out_dir)
+    fitted = trainer.field.appearance is not None
+    views = iter_test_renders(trainer, fit_appearance=fitted)
+    mean_code_views = iter_test_renders(trainer) if fitted else itertools.repeat(None)
     per_image = []
     bar = tqdm(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
-        for name, out, gt in iter_test_renders(trainer):
+        for (name, out, gt), mean_code in zip(views, mean_code_views):
             stem = Path(name).stem
-            # SSIM needs an 11-pixel window: images smaller than that get none (null in the JSON).
-            p = psnr(out["rgb"], gt)
-            s = ssim(out["rgb"], gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
-            lpips, lpips_note = lpips_or_reason(out["rgb"], gt)
-            per_image.append({"image": name, "psnr": p, "ssim": s, "lpips": lpips})
+            if fitted:
+                scores, lpips_note = _scores(right_half(out["rgb"]), right_half(gt))
+                scores["psnr_mean_code"] = psnr(mean_code[1]["rgb"], gt)
+            else:
+                scores, lpips_note = _scores(out["rgb"], gt)
+            per_image.append({"image": name, **scores})
             iio.imwrite(renders / f"{stem}.png", to_uint8(out["rgb"]))
             iio.imwrite(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
-            bar.set_postfix(psnr=f"{p:.2f}", refresh=False)
+            bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
             bar.update()
         bar.close()
+    appearance = {"appearance": f"code fitted on the left half ({FIT_ITERATIONS} iterations), scored on the "
+                                f"right half",
+                  "psnr_mean_code": float(np.mean([m["psnr_mean_code"] for m in per_image]))} if fitted else {}
     metrics = {
         "psnr": float(np.mean([m["psnr"] for m in per_image])),
         "ssim": None if per_image[0]["ssim"] is None else float(np.mean([m["ssim"] for m in per_image])),
@@ -88,7 +117,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
         "device": str(trainer.device),
         "test_split": "held-out training frames" if trainer.scene.test_is_heldout else "test",
         "n_test_images": len(per_image),
-        **({"appearance": "mean embedding"} if trainer.field.appearance is not None else {}),
+        **appearance,
         "per_image": per_image,
     }
     metrics = finite_or_null(metrics)

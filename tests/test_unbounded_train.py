@@ -102,17 +102,21 @@ def test_appearance_codes_change_only_their_images_rays(unbounded_scene):
     torch.testing.assert_close(after["opacity"], before["opacity"], rtol=0, atol=0)
 
 
-def test_evaluation_uses_the_mean_code_on_black(unbounded_scene, tmp_path):
+def test_evaluation_renders_on_black(unbounded_scene, tmp_path):
     trainer = Trainer(unbounded_scene, small_config(), device="cpu")
     with torch.no_grad():
         trainer.field.appearance.weight.normal_(std=1.0)
     metrics = evaluate(trainer, tmp_path, show_progress=False)
-    assert metrics["appearance"] == "mean embedding"
-    assert json.loads((tmp_path / "metrics.json").read_text())["appearance"] == "mean embedding"
+    assert metrics["appearance"].startswith("code fitted on the left half") and "psnr_mean_code" in metrics
+    assert json.loads((tmp_path / "metrics.json").read_text())["appearance"] == metrics["appearance"]
     split = unbounded_scene.test
-    _, out, _ = next(iter_test_renders(trainer))
+    _, out, _ = next(iter_test_renders(trainer))  # the mean code
     black = trainer.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height, background=0.0)
     torch.testing.assert_close(out["rgb"], black["rgb"])
+    _, fitted, _ = next(iter_test_renders(trainer, fit_appearance=True))
+    black = trainer.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height, background=0.0,
+                                 appearance_code=fitted["appearance_code"])
+    torch.testing.assert_close(fitted["rgb"], black["rgb"])
     white = trainer.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height, background=1.0)
     assert not torch.equal(white["rgb"], out["rgb"])  # the evaluation did not render on white
 

@@ -1,0 +1,132 @@
+"""A held-out view's appearance code, fitted on the left half of its image with the field frozen,
+and the evaluation that scores it on the right half (issue 18 item 3; CPU)."""
+
+import json
+from pathlib import Path
+
+import imageio.v3 as iio
+import pytest
+import torch
+
+from ngp_warp.appearance_fit import FIT_ITERATIONS, fit_appearance_code, right_half
+from ngp_warp.config import TrainConfig
+from ngp_warp.data import load_scene
+from ngp_warp.evaluate import evaluate, iter_test_renders, to_uint8
+from ngp_warp.field import FieldConfig
+from ngp_warp.metrics import psnr
+from ngp_warp.scene import write_demo_scene
+from ngp_warp.scene_unbounded import write_unbounded_scene
+from ngp_warp.trainer import Trainer
+
+FIT = {"iterations": 60}  # every left-half pixel of the 24-pixel views in each iteration
+
+
+def small_config(steps: int) -> TrainConfig:
+    return TrainConfig(steps=steps, target_samples=1 << 13, grid_resolution=32, steps_per_diagonal=256,
+                       field=FieldConfig(n_levels=8, log2_hashmap_size=14, hidden=32))
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A trainer on the 24-pixel unbounded scene (appearance codes, weight average) after 60 steps,
+    its last update applied and no gradients left in the field."""
+    path = tmp_path_factory.mktemp("unbounded") / "scene"
+    write_unbounded_scene(path, width=24, height=24, n_train=12, n_test=2, supersample=1)
+    trainer = Trainer(load_scene(path), small_config(60), device="cpu")
+    trainer.train(show_progress=False)
+    trainer.flush()
+    trainer.weights.zero_grad()
+    assert trainer.field.appearance is not None and trainer.weights.averaged is not None
+    return trainer
+
+
+def view(trainer: Trainer, i: int = 0) -> dict:
+    split = trainer.scene.test
+    return dict(c2w=split.c2w[i], intrinsics=split.intrinsics[i], width=split.width, height=split.height)
+
+
+def render(trainer: Trainer, code: torch.Tensor | None, i: int = 0) -> torch.Tensor:
+    return trainer.render_image(**view(trainer, i), background=0.0, supersample=1, appearance_code=code)["rgb"]
+
+
+def test_fitted_code_reproduces_a_known_code_and_leaves_the_field_alone(trained):
+    field = trained.field
+    mean = field.appearance.weight.detach().mean(0)
+    known = mean + 2.0 * torch.randn(mean.shape, generator=torch.Generator().manual_seed(7))
+    target = render(trained, known)
+    weights = [p.detach().clone() for p in field.parameters()]
+    averaged = [a.clone() for a in trained.weights.averaged]
+    code = fit_appearance_code(trained, **view(trained), image=target, background=0.0, **FIT)
+    assert code.shape == mean.shape and code.dtype == torch.float32 and not code.requires_grad
+    with_mean = psnr(right_half(render(trained, None)), right_half(target))
+    fitted = psnr(right_half(render(trained, code)), right_half(target))
+    assert fitted > with_mean + 10.0, (with_mean, fitted)  # the code itself is not unique: 16 numbers, 3 colours
+    assert all(torch.equal(a, b) for a, b in zip(weights, field.parameters(), strict=True))
+    assert all(torch.equal(a, b) for a, b in zip(averaged, trained.weights.averaged, strict=True))
+    assert all(p.grad is None for p in field.parameters())
+
+
+def test_fit_sees_only_the_left_half_and_is_deterministic(trained):
+    target = render(trained, None) * 0.7  # darker than any code renders with the mean
+    code = fit_appearance_code(trained, **view(trained), image=target, background=0.0, **FIT)
+    noisy = target.clone()
+    noisy[:, target.shape[1] // 2:] = torch.rand_like(noisy[:, target.shape[1] // 2:])
+    assert torch.equal(fit_appearance_code(trained, **view(trained), image=noisy, background=0.0, **FIT), code)
+    left = target.clone()
+    left[:, : target.shape[1] // 2 - 1] = torch.rand_like(left[:, : target.shape[1] // 2 - 1])
+    assert not torch.equal(fit_appearance_code(trained, **view(trained), image=left, background=0.0, **FIT), code)
+
+
+def test_random_batches_are_seeded(trained):
+    target = render(trained, None) * 0.7
+    fit = dict(image=target, background=0.0, iterations=20, rays_per_iteration=64)  # fewer than 288 pixels
+    first = fit_appearance_code(trained, **view(trained), **fit, seed=1)
+    torch.rand(3)  # the global generator plays no part
+    assert torch.equal(fit_appearance_code(trained, **view(trained), **fit, seed=1), first)
+    assert not torch.equal(fit_appearance_code(trained, **view(trained), **fit, seed=2), first)
+
+
+def test_right_half_is_the_columns_from_the_middle():
+    image = torch.arange(5 * 7 * 3, dtype=torch.float32).reshape(5, 7, 3)
+    assert torch.equal(right_half(image), image[:, 3:])
+
+
+def test_mistakes_are_one_line(trained, tmp_path):
+    target = render(trained, None)
+    with pytest.raises(ValueError, match=r"image must be a float \[24, 24, 3\]"):
+        fit_appearance_code(trained, **view(trained), image=target[:, :20])
+    with pytest.raises(ValueError, match="iterations"):
+        fit_appearance_code(trained, **view(trained), image=target, iterations=0)
+    path = write_demo_scene(tmp_path / "scene", width=16, height=16, n_train=4, n_test=1, supersample=1)
+    synthetic = Trainer(load_scene(path), small_config(1), device="cpu")
+    with pytest.raises(ValueError, match="appearance codes"):
+        fit_appearance_code(synthetic, **view(synthetic), image=torch.rand(16, 16, 3))
+
+
+def test_evaluation_scores_the_right_half_with_the_fitted_code(trained, tmp_path):
+    metrics = evaluate(trained, tmp_path, show_progress=False)
+    assert metrics["appearance"] == (f"code fitted on the left half ({FIT_ITERATIONS} iterations), "
+                                     f"scored on the right half")
+    assert json.loads((tmp_path / "metrics.json").read_text())["appearance"] == metrics["appearance"]
+    fitted = list(iter_test_renders(trained, fit_appearance=True))
+    mean_code = list(iter_test_renders(trained))
+    for record, (name, out, gt), (_, mean_out, _) in zip(metrics["per_image"], fitted, mean_code, strict=True):
+        assert record["image"] == name and out["appearance_code"].shape == (16,)
+        assert record["psnr"] == pytest.approx(psnr(right_half(out["rgb"]), right_half(gt)), abs=1e-9)
+        assert record["psnr_mean_code"] == pytest.approx(psnr(mean_out["rgb"], gt), abs=1e-9)
+        assert "appearance_code" not in mean_out
+        written = torch.from_numpy(iio.imread(tmp_path / "renders" / f"{Path(name).stem}.png"))
+        assert torch.equal(written, torch.from_numpy(to_uint8(out["rgb"])))
+    assert metrics["psnr_mean_code"] == pytest.approx(sum(m["psnr_mean_code"] for m in metrics["per_image"]) / 2)
+    assert metrics["ssim"] is not None  # the right half (24 x 12) holds an SSIM window
+
+
+def test_evaluation_without_codes_keeps_its_keys(tmp_path):
+    path = write_demo_scene(tmp_path / "scene", width=16, height=16, n_train=4, n_test=1, supersample=1)
+    trainer = Trainer(load_scene(path), small_config(1), device="cpu")
+    metrics = evaluate(trainer, tmp_path, show_progress=False)
+    assert set(metrics) == {"psnr", "ssim", "lpips", "lpips_note", "train_seconds", "steps", "device", "test_split",
+                            "n_test_images", "per_image"}
+    assert set(metrics["per_image"][0]) == {"image", "psnr", "ssim", "lpips"}
+    _, out, gt = next(iter_test_renders(trainer, fit_appearance=True))  # no codes: nothing fitted
+    assert "appearance_code" not in out and out["rgb"].shape == gt.shape
