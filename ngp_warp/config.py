@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 from ngp_warp._checks import check_numbers
 from ngp_warp.data import Scene
 from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig
-from ngp_warp.scene_defaults import appearance_dim, choose_contraction, cone_steps, contraction_box
+from ngp_warp.scene_defaults import (appearance_dim, choose_contraction, cone_steps, contraction_box,
+                                     occupancy_threshold)
 from ngp_warp.transforms_json import CONTRACTIONS
 
 
@@ -35,8 +36,9 @@ class TrainConfig:
     contraction: str | None = "auto"    # "l2" | "linf" | None: unbounded space contracted (mip-NeRF 360,
                                         # nerfstudio's L∞); "auto": the scene's (scene_defaults)
     early_stop_eps: float = 1e-4
-    occupancy_threshold: float = 0.01   # a grid cell is occupied while its optical thickness over one
-                                        # step, σ·step, exceeds min(this, the mean): instant-ngp's 0.01
+    occupancy_threshold: float | None = None  # a grid cell is occupied while its optical thickness over
+                                        # one step, σ·step, exceeds min(this, the mean); None: per scene
+                                        # (instant-ngp's 0.01 on NeRF-synthetic, 0.05 on captures)
     occupancy_decay: float = 0.95       # each grid refresh (every 16 steps) scales old estimates by this
     mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
                                         # field's graphs, "tf32" matmuls, or "fp32"
@@ -64,7 +66,7 @@ class TrainConfig:
                                      "steps_per_diagonal"),
                        positive=("seconds", "lr", "occupancy_threshold"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"),
-                       optional=("steps", "seconds", "target_samples", "cone_angle"))
+                       optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold"))
         if not 0.0 <= self.occupancy_decay < 1.0:
             raise ValueError(f"occupancy_decay must be in [0, 1), got {self.occupancy_decay!r}")
         if not 0.0 <= self.weight_average < 1.0:
@@ -188,14 +190,16 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str 
 def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> TrainConfig:
     """``config``, checked, or a copy with the settings left to None or "auto" filled in for the
     device (:func:`device_defaults`) and the scene (:mod:`ngp_warp.scene_defaults`: the
-    contraction, the cone angle and the appearance code size; the finest resolution, by
+    contraction, the cone angle, the occupancy threshold and the appearance code size; the finest resolution, by
     :func:`pixel_matched_resolution`), so that checkpoints store the values used. Raises
     ValueError naming a setting out of range."""
     config.check()
     config = device_defaults(config, device_type)
     kind = choose_contraction(config.contraction, scene)
     cone = cone_steps(scene, kind)[0] if config.cone_angle is None else config.cone_angle
-    config = dataclasses.replace(config, contraction=kind, cone_angle=cone)
+    threshold = config.occupancy_threshold
+    threshold = occupancy_threshold(scene) if threshold is None else threshold
+    config = dataclasses.replace(config, contraction=kind, cone_angle=cone, occupancy_threshold=threshold)
     field_config = config.field
     if field_config.appearance_dim is None:
         field_config = dataclasses.replace(field_config, appearance_dim=appearance_dim(scene))

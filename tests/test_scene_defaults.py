@@ -6,8 +6,10 @@ import math
 import pytest
 import torch
 
+from ngp_warp.config import TrainConfig, resolve_defaults
 from ngp_warp.data import DataError, load_scene
 from ngp_warp.scene_defaults import (appearance_dim, cameras_surround_centre, choose_contraction, cone_steps,
+                                     occupancy_threshold,
                                      contraction_box)
 from ngp_warp.scene_unbounded import write_unbounded_scene
 
@@ -53,6 +55,9 @@ def test_unbounded_scene_asks_for_contraction_and_gets_cone_steps(tmp_path):
     cone, lo, hi = cone_steps(scene, "l2")
     assert cone == 1 / 256 and lo == pytest.approx(8 * math.sqrt(3) / 1024) and hi == pytest.approx(8 * math.sqrt(3))
     assert cone_steps(scene, None)[0] == 0.0 and appearance_dim(scene) == 16
+    assert occupancy_threshold(scene) == 0.05  # a capture's grid, stricter than instant-ngp's 0.01
+    assert resolve_defaults(TrainConfig(), scene, "cpu").occupancy_threshold == 0.05
+    assert resolve_defaults(TrainConfig(occupancy_threshold=0.2), scene, "cpu").occupancy_threshold == 0.2
     with pytest.raises(ValueError, match="contraction must be"):
         choose_contraction("sphere", scene)
 

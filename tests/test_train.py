@@ -254,11 +254,13 @@ def test_config_check_refuses_wrong_types_and_field_sizes(bad):
 def test_occupancy_settings_reach_the_grid(tiny_scene):
     """A higher occupancy threshold leaves fewer cells occupied after the same steps (one step with a
     refresh, from the same weights: the grid's own update rule, min(threshold, mean), decides)."""
+    scene = load_scene(tiny_scene)
+    assert scene.source == "nerf-synthetic" and Trainer(scene, tiny_config(1), device="cpu").config.occupancy_threshold == 0.01
     occupied = {}
     for threshold in (1e-4, 10.0):
         cfg = tiny_config(1)
         cfg.occupancy_threshold, cfg.occupancy_decay = threshold, 0.5
-        trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+        trainer = Trainer(scene, cfg, device="cpu")
         trainer.step()
         occupied[threshold] = int(trainer.grid.occupied().sum())
         assert float(trainer.grid.threshold) <= threshold
