@@ -6,6 +6,9 @@ Reports test PSNR (all test views, white background) at 5, 15, 30, 60, 120 and 3
 training wall-clock. Evaluation time is excluded: the clock stops while we evaluate. Kernel
 compilation (a first run's cost; Warp caches kernels on disk) happens before the clock starts.
 Also ms per step, rays and samples per step, peak GPU memory. Writes a JSON and a PNG plot.
+Scenes with appearance codes are scored with the mean code on whole images (``psnr``) and, as
+``ngp-warp eval`` scores them, with a code fitted on each view's left half, on its right half
+(``psnr_fitted_right_half``).
 
 By default one run is evaluated at every checkpoint, its learning-rate schedule spread over
 the last one; ``--schedule-per-checkpoint`` trains a fresh run per checkpoint instead, each
@@ -27,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ngp_warp.appearance_fit import right_half
 from ngp_warp.config import TrainConfig, apply_overrides
 from ngp_warp.data import DataError, load_scene
 from ngp_warp.evaluate import iter_test_renders
@@ -121,6 +125,10 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, sp
         if spp > 1:
             row["psnr_spp"] = float(np.mean([psnr(out["rgb"], gt) for _, out, gt in
                                              iter_test_renders(trainer, every=test_every, spp=spp)]))
+        if trainer.field.appearance is not None:  # what evaluate() reports: fitted code, right half
+            row["psnr_fitted_right_half"] = float(np.mean([
+                psnr(right_half(out["rgb"]), right_half(gt))
+                for _, out, gt in iter_test_renders(trainer, every=test_every, fit_appearance=True)]))
         if grid_stats:
             row["grid"] = sample_stats(trainer)
         row["eval_seconds"] = time.perf_counter() - start
@@ -128,7 +136,9 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, sp
         print(f"{mark:6.0f} s  step {row['steps']:6d}  PSNR {row['psnr']:6.2f} dB  {ms:6.2f} ms/step  "
               f"rays {row['rays_per_step']:8.0f}  samples {row['samples_per_step']:9.0f}"
               f"  marched {row['marched_per_step']:9.0f}"
-              + (f"  PSNR at {spp} spp {row['psnr_spp']:6.2f} dB" if spp > 1 else ""), flush=True)
+              + (f"  PSNR at {spp} spp {row['psnr_spp']:6.2f} dB" if spp > 1 else "")
+              + (f"  right half, fitted code {row['psnr_fitted_right_half']:6.2f} dB"
+                 if "psnr_fitted_right_half" in row else ""), flush=True)
         if grid_stats:
             print(f"        {format_stats(row['grid'])}", flush=True)
     return rows

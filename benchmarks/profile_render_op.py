@@ -39,12 +39,23 @@ def scene_ops(kind: str, device: str, target_samples: int) -> dict:
         rgb = composite_packed(sigmas, rgbs, m.t_starts, m.t_ends, m.ray_offsets, 1e-4)[0]
         torch.autograd.grad(rgb, (sigmas, rgbs), g_rgb)
 
+    capacity = samples.n_samples + samples.n_samples // 8
+    sigmas_c = torch.cat([sigmas.detach(), sigmas.detach()[: capacity - samples.n_samples]]).requires_grad_(True)
+    rgbs_c = torch.cat([rgbs.detach(), rgbs.detach()[: capacity - samples.n_samples]]).requires_grad_(True)
+
+    def total_no_sync():
+        m = ray_marching(rays_o, rays_d, grid, validate=False, capacity=capacity)
+        rgb = composite_packed(sigmas_c, rgbs_c, m.t_starts, m.t_ends, m.ray_offsets, 1e-4)[0]
+        torch.autograd.grad(rgb, (sigmas_c, rgbs_c), g_rgb)
+
     return {
         "march": lambda: ray_marching(rays_o, rays_d, grid, validate=False),
+        "march, capacity": lambda: ray_marching(rays_o, rays_d, grid, validate=False, capacity=capacity),
         "composite fwd": lambda: composite_packed(sigmas, rgbs, samples.t_starts, samples.t_ends,
                                                   samples.ray_offsets, 1e-4),
         "composite bwd": lambda: torch.autograd.grad(out[0], (sigmas, rgbs), g_rgb, retain_graph=True),
         "march+fwd+bwd": total,
+        "same, capacity": total_no_sync,
         "_shape": (rays_o.shape[0], samples.n_samples),
     }
 

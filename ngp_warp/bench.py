@@ -150,7 +150,9 @@ def make_rays(n: int, device: str) -> tuple[torch.Tensor, torch.Tensor]:
 def bench_scene(kind: str, device: str, target_samples: int, iters: int) -> list[dict]:
     """Rows ``{scene, op, device, rays, samples, ms, rays_per_s, samples_per_s}`` for the ops
     ``march``, ``composite fwd``, ``composite bwd`` and ``march+fwd+bwd`` on as many rays of the
-    scene ``kind`` as give about ``target_samples`` samples, each timed by :func:`timed`."""
+    scene ``kind`` as give about ``target_samples`` samples, each timed by :func:`timed`; and
+    ``same, capacity``: all three with the march given a capacity 1/8 above the count (no host
+    synchronisation, so back-to-back calls overlap the host's work with the GPU's)."""
     grid = scene_grid(kind, device)
     probe_o, probe_d = make_rays(1024, device)
     per_ray = max(ray_marching(probe_o, probe_d, grid, validate=False).n_samples / 1024, 1.0)
@@ -178,9 +180,18 @@ def bench_scene(kind: str, device: str, target_samples: int, iters: int) -> list
         rgb = composite_packed(sigmas, rgbs, m.t_starts, m.t_ends, m.ray_offsets, 1e-4)[0]
         torch.autograd.grad(rgb, (sigmas, rgbs), g_rgb)
 
+    capacity = s + s // 8  # room for the count to vary, as a caller would size it from the last call
+    sigmas_c = torch.cat([sigmas.detach(), sigmas.detach()[: capacity - s]]).requires_grad_(True)
+    rgbs_c = torch.cat([rgbs.detach(), rgbs.detach()[: capacity - s]]).requires_grad_(True)
+
+    def total_no_sync():
+        m = ray_marching(rays_o, rays_d, grid, validate=False, capacity=capacity)
+        rgb = composite_packed(sigmas_c, rgbs_c, m.t_starts, m.t_ends, m.ray_offsets, 1e-4)[0]
+        torch.autograd.grad(rgb, (sigmas_c, rgbs_c), g_rgb)
+
     rows = []
     for op, fn in (("march", march), ("composite fwd", forward), ("composite bwd", backward),
-                   ("march+fwd+bwd", total)):
+                   ("march+fwd+bwd", total), ("same, capacity", total_no_sync)):
         sec = timed(fn, iters, device)
         rows.append({"scene": kind, "op": op, "device": device, "rays": n_rays, "samples": s,
                      "ms": sec * 1e3, "rays_per_s": n_rays / sec, "samples_per_s": s / sec})

@@ -224,6 +224,29 @@ def _march_steps(march: MarchOptions, grid: OccupancyGrid) -> tuple[float, float
     return step, max_step, cap
 
 
+def _sample_total(total: torch.Tensor, capacity: int | None, before_sync, flags: torch.Tensor | None) -> int:
+    """The sample count ([1] int32 on the device) on the host, with the validation ``flags``
+    checked (the march's one host synchronisation); with a ``capacity`` and no flags, no sync
+    (returns 0: the caller sizes the output to the capacity)."""
+    if flags is not None:
+        total = torch.cat([total, flags])
+    elif capacity is not None:
+        if before_sync is not None:
+            before_sync()
+        return 0
+    n_samples, *read = _read_total(total, before_sync)
+    if read:
+        _raise_flags(read[0])
+    return n_samples
+
+
+def _empty_or_full(n: int, dtype: torch.dtype, value, fill: bool, device) -> torch.Tensor:
+    """[n] tensor: uninitialised, or filled with ``value`` (a capacity's padding rows)."""
+    if fill:
+        return torch.full((n,), value, dtype=dtype, device=device)
+    return torch.empty(n, dtype=dtype, device=device)
+
+
 @torch.no_grad()
 def ray_marching(
     rays_o: torch.Tensor,
@@ -234,6 +257,7 @@ def ray_marching(
     before_sync: Callable[[], None] | None = None,
     validate: bool = True,
     unit_directions: bool = False,
+    capacity: int | None = None,
 ) -> RaySamples:
     """March rays through ``grid`` and return the packed samples in occupied cells.
 
@@ -252,12 +276,19 @@ def ray_marching(
             sample count, so the check adds no host synchronisation. ValueError otherwise.
             Training loops that make their own rays pass False (no extra launches).
         unit_directions: with ``validate``, require unit directions (as ``render_rays`` does).
+        capacity: None sizes the output to the samples marched (the one host synchronisation);
+            an int gives exactly ``capacity`` rows without waiting for the count: rays past it
+            lose their tail (as with ``max_samples``), rows past ``ray_offsets[N]`` are padding
+            (ray index N, interval [0, 0], position and direction 0; composited with weight 0).
+            With ``validate`` the check's flags are still read, which synchronises.
 
     Returns:
         :class:`RaySamples`.
     """
     _check_rays(rays_o, rays_d, grid)
     step, max_step, cap = _march_steps(march, grid)
+    if capacity is not None and (type(capacity) is not int or capacity < 1):
+        raise ValueError(f"capacity must be None or an int ≥ 1, got {capacity!r}")
     near, far, cone_angle = float(march.near), float(march.far), float(march.cone_angle)
     dev = rays_o.device
     n_rays = rays_o.shape[0]
@@ -280,22 +311,20 @@ def ray_marching(
             in_ray = torch.cumsum(seg_counts.view(n_rays, n_seg), 1, dtype=torch.int32).clamp_(max=cap)
             seg_counts = torch.diff(in_ray, dim=1, prepend=in_ray.new_zeros(n_rays, 1)).reshape(-1)
         torch.cumsum(seg_counts, 0, dtype=torch.int32, out=seg_offsets[1:])
-        if march.max_samples is not None:
-            seg_offsets.clamp_(max=int(march.max_samples))
-        total = seg_offsets[-1:]
-        if validate:
-            total = torch.cat([total, _ray_flags(rays_o, rays_d, unit_directions)])
-        n_samples, *flags = _read_total(total, before_sync)  # the one host synchronisation
-        if flags:
-            _raise_flags(flags[0])
+        limit = min(x for x in (march.max_samples, capacity, _NO_CAP) if x is not None)
+        if limit != _NO_CAP:
+            seg_offsets.clamp_(max=int(limit))
+        n_samples = _sample_total(seg_offsets[-1:], capacity, before_sync,
+                                  _ray_flags(rays_o, rays_d, unit_directions) if validate else None)
     elif before_sync is not None:
         before_sync()
-    ray_indices = torch.empty(n_samples, dtype=torch.int64, device=dev)
-    floats = torch.empty(8 * n_samples, dtype=torch.float32, device=dev)  # one allocation, contiguous parts
+    n_samples = n_samples if capacity is None else capacity
+    ray_indices = _empty_or_full(n_samples, torch.int64, n_rays, capacity is not None, dev)
+    floats = _empty_or_full(8 * n_samples, torch.float32, 0, capacity is not None, dev)  # contiguous parts
     t_starts, t_ends = floats[:n_samples], floats[n_samples : 2 * n_samples]
     positions = floats[2 * n_samples : 5 * n_samples].view(n_samples, 3)
     directions = floats[5 * n_samples :].view(n_samples, 3)
-    if n_samples > 0:
+    if n_samples > 0 and n_rays > 0:
         _wp.launch(
             K.march_rays, n_items,
             [1, *common, None, seg_offsets, offsets, ray_indices, t_starts, t_ends, positions, directions, masks],

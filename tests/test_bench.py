@@ -5,7 +5,8 @@ import math
 from ngp_warp.bench import KernelBenchConfig
 from ngp_warp.cli import main
 
-OPS = ("encode fwd", "encode bwd", "encode fwd+bwd", "march", "composite fwd", "composite bwd", "march+fwd+bwd")
+OPS = ("encode fwd", "encode bwd", "encode fwd+bwd", "march", "composite fwd", "composite bwd", "march+fwd+bwd",
+       "same, capacity")
 
 
 def test_bench_quick_prints_the_table(capsys):

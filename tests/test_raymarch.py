@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import pytest
@@ -173,6 +174,30 @@ def test_caps_keep_the_front_samples():
     total = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.02, max_samples=1000))
     assert total.n_samples == 1000 and torch.equal(total.t_starts, full.t_starts[:1000])
     assert torch.equal(total.ray_indices, full.ray_indices[:1000])
+
+
+@pytest.mark.parametrize("cone_angle", [0.0, 1 / 64])
+def test_capacity_pads_or_cuts_without_reading_the_count(monkeypatch, cone_angle):
+    """A capacity gives exactly that many rows with no read of the count: above the count, the
+    samples then padding (ray N, empty interval, zeros); below it, what max_samples keeps."""
+    grid = random_grid(2, p=0.6)
+    rays_o, rays_d = random_rays(100, 2)
+    march = MarchOptions(step_size=0.02, cone_angle=cone_angle)
+    full = ray_marching(rays_o, rays_d, grid, march, validate=False)
+    n, s = rays_o.shape[0], full.n_samples
+    monkeypatch.setattr(raymarch, "_read_total", lambda *a: pytest.fail("a capacity must not read the count"))
+    padded = ray_marching(rays_o, rays_d, grid, march, validate=False, capacity=s + 77)
+    assert padded.n_samples == s + 77 and torch.equal(padded.ray_offsets, full.ray_offsets)
+    for name in ("ray_indices", "t_starts", "t_ends", "positions", "directions"):
+        torch.testing.assert_close(getattr(padded, name)[:s], getattr(full, name), rtol=0, atol=0)
+        assert (getattr(padded, name)[s:] == (n if name == "ray_indices" else 0)).all()
+    cut = ray_marching(rays_o, rays_d, grid, march, validate=False, capacity=s // 2)
+    monkeypatch.undo()
+    front = ray_marching(rays_o, rays_d, grid, dataclasses.replace(march, max_samples=s // 2), validate=False)
+    assert cut.n_samples == front.n_samples == s // 2 and torch.equal(cut.ray_offsets, front.ray_offsets)
+    assert torch.equal(cut.t_starts, front.t_starts) and torch.equal(cut.ray_indices, front.ray_indices)
+    with pytest.raises(ValueError, match="capacity"):
+        ray_marching(rays_o, rays_d, grid, march, capacity=0)
 
 
 @pytest.mark.parametrize("levels", [1, 3])
