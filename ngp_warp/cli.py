@@ -162,6 +162,9 @@ def _print_metrics(metrics: dict, out: Path) -> None:
     print(f"{metrics['test_split']}: PSNR {psnr}  SSIM {ssim}  "
           f"({metrics['n_test_images']} images, {metrics['steps']} steps, "
           f"{metrics['train_seconds']:.1f} s training on {metrics['device']})")
+    if metrics.get("psnr_mean_code") is not None:
+        print(f"  (right halves, each view's appearance code fitted on its left half; whole images with the "
+              f"mean code: PSNR {metrics['psnr_mean_code']:.2f} dB)")
     print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
 
 
