@@ -49,20 +49,22 @@ def _check_points(name: str, t, device=None) -> None:
     _wp.device_of(t)
 
 
-def _inner_box(aabb, device: torch.device) -> torch.Tensor:
-    """[6] float32 inner box on ``device``; [-1, 1]^3 when None."""
+def _inner_box(aabb, device: torch.device, check_values: bool = True) -> torch.Tensor:
+    """[6] float32 inner box on ``device``; [-1, 1]^3 when None. ``check_values`` reads the box
+    (a host synchronisation on a GPU, not allowed inside CUDA-graph capture)."""
     if aabb is None:
         return torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], device=device)
     if not isinstance(aabb, torch.Tensor) or tuple(aabb.shape) != (6,) or aabb.dtype != torch.float32:
         raise ValueError(f"aabb must be a [6] float32 tensor, got {getattr(aabb, 'shape', type(aabb).__name__)}")
     if aabb.device != device:
         raise ValueError(f"aabb is on {aabb.device}, the points on {device}")
-    if not bool(torch.isfinite(aabb).all() and (aabb[3:] > aabb[:3]).all()):
+    if check_values and not bool(torch.isfinite(aabb).all() and (aabb[3:] > aabb[:3]).all()):
         raise ValueError(f"aabb must be finite with max > min on every axis, got {aabb.tolist()}")
     return aabb.contiguous()
 
 
-def contract(x: torch.Tensor, kind: str = "l2", aabb: torch.Tensor | None = None) -> torch.Tensor:
+def contract(x: torch.Tensor, kind: str = "l2", aabb: torch.Tensor | None = None, *,
+             check_box: bool = True) -> torch.Tensor:
     """Contract world points into the radius-2 ball (``"l2"``) or cube (``"linf"``).
 
     Args:
@@ -70,32 +72,36 @@ def contract(x: torch.Tensor, kind: str = "l2", aabb: torch.Tensor | None = None
         kind: ``"l2"`` (mip-NeRF 360) or ``"linf"`` (nerfstudio's L∞ contraction).
         aabb: [6] float32 inner box xmin, ymin, zmin, xmax, ymax, zmax (same device as ``x``);
             None for [-1, 1]^3. Its centre and half extents normalise x before contracting.
+        check_box: check that ``aabb`` is finite with max > min (one host synchronisation on a
+            GPU); callers whose box was checked once already (the field, the occupancy grid)
+            pass False, which also lets the call be captured in a CUDA graph.
 
     Returns:
         [N, 3] float32 contracted points y with ‖y‖ < 2 (‖y‖ ≤ 1 exactly for the inner region);
         no gradient.
     """
     _check_points("x", x)
-    flag, box = _flag(kind), _inner_box(aabb, x.device)
+    flag, box = _flag(kind), _inner_box(aabb, x.device, check_box)
     out = torch.empty_like(x)
     _wp.launch(K.contract_points, x.shape[0], [x.contiguous(), box, flag, out], _wp.device_of(x))
     return out
 
 
-def uncontract(y: torch.Tensor, kind: str = "l2", aabb: torch.Tensor | None = None) -> torch.Tensor:
+def uncontract(y: torch.Tensor, kind: str = "l2", aabb: torch.Tensor | None = None, *,
+               check_box: bool = True) -> torch.Tensor:
     """Inverse of :func:`contract`: contracted points back to world points.
 
     Args:
         y: [N, 3] float32 contracted points; ‖y‖ is clamped to 2 − 2^-20, so a point on or
             beyond the radius-2 boundary comes back at normalised distance 2^20 (about 1e6),
             along its own direction.
-        kind, aabb: as for :func:`contract`.
+        kind, aabb, check_box: as for :func:`contract`.
 
     Returns:
         [N, 3] float32 world points; no gradient.
     """
     _check_points("y", y)
-    flag, box = _flag(kind), _inner_box(aabb, y.device)
+    flag, box = _flag(kind), _inner_box(aabb, y.device, check_box)
     out = torch.empty_like(y)
     _wp.launch(K.uncontract_points, y.shape[0], [y.contiguous(), box, flag, out], _wp.device_of(y))
     return out

@@ -178,6 +178,8 @@ class NGPField(nn.Module):
         self.config = cfg
         self.contraction = contraction
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(6)
+        if not bool(torch.isfinite(aabb).all() and (aabb[3:] > aabb[:3]).all()):  # once, here: not per call
+            raise ValueError(f"aabb must be finite with max > min on every axis, got {aabb.tolist()}")
         self.register_buffer("aabb", aabb.clone())
         # the hash grid's box: the field's box, or the contracted ball's [-2, 2]^3
         grid_box = aabb.clone() if contraction is None else torch.tensor([-2.0] * 3 + [2.0] * 3)
@@ -207,7 +209,7 @@ class NGPField(nn.Module):
         """World positions [N, 3] → the hash grid's coordinates [N, 3] float32: themselves, or C(x)."""
         if self.contraction is None:
             return positions
-        return contract(positions.detach().float().contiguous(), self.contraction, self.aabb)
+        return contract(positions.detach().float().contiguous(), self.contraction, self.aabb, check_box=False)
 
     def _unit(self, grid_points: torch.Tensor) -> torch.Tensor:
         """Grid coordinates [N, 3] mapped from the (contracted) box to [0, 1]^3, contiguous (the

@@ -200,7 +200,7 @@ class OccupancyGrid(nn.Module):
             m = min(chunk, n_samples - lo)
             cells, points = self._draw(lo, m, warmup, n_uniform, seed, prefix)
             if self.contraction is not None:
-                points = uncontract(points, self.contraction, self.inner_aabb)
+                points = uncontract(points, self.contraction, self.inner_aabb, check_box=False)
             values = density_fn(points)
             if not isinstance(values, torch.Tensor) or values.numel() != m or values.shape[0] != m:
                 shape = tuple(values.shape) if isinstance(values, torch.Tensor) else type(values).__name__

@@ -68,3 +68,37 @@ def test_bad_settings_raise():
         NGPField(INNER, CFG, contraction="sphere")
     with pytest.raises(ValueError, match="appearance_dim"):
         FieldConfig(appearance_dim=-1).check()
+
+
+def test_the_field_checks_its_box_once_so_calls_do_not_read_it():
+    """The contraction reads its box (a GPU sync, fatal in CUDA-graph capture) unless told the box
+    was checked: the field checks it at construction and not per call."""
+    from ngp_warp.contraction import contract
+
+    x = torch.rand(16, 3) * 4 - 2
+    bad = torch.tensor([0.0, 0.0, 0.0, float("nan"), 1.0, 1.0])
+    with pytest.raises(ValueError, match="finite"):
+        contract(x, "l2", bad)
+    assert contract(x, "l2", bad, check_box=False).shape == (16, 3)  # not read
+    with pytest.raises(ValueError, match="finite"):
+        NGPField(bad, FieldConfig(n_levels=2, log2_hashmap_size=8), contraction="l2")
+
+
+@pytest.mark.cuda
+def test_contracted_density_captures_in_a_cuda_graph():
+    field = NGPField(torch.tensor([-1.0, -1, -1, 1, 1, 1]), FieldConfig(n_levels=4, log2_hashmap_size=12),
+                     contraction="l2").cuda()
+    x = torch.rand(4096, 3, device="cuda") * 8 - 4
+    with torch.no_grad():
+        want = field.density(x)
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            field.density(x)  # warm-up off the capture
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            got = field.density(x)
+        graph.replay()
+    torch.cuda.synchronize()
+    torch.testing.assert_close(got, want)
