@@ -268,19 +268,15 @@ def ray_marching(
         grid: the occupancy grid, on the rays' device.
         march: the ray interval, steps and caps (:class:`MarchOptions`).
         before_sync: called once, after the count pass is queued and before the host waits for
-            the total: work queued there on the current stream keeps the GPU busy through the
-            synchronisation (the trainer queues the previous step's optimizer update). It must
-            not change the rays or the grid.
-        validate: check on the device that origins and directions are finite (and with
-            ``unit_directions`` that ``|d| = 1`` within 1e-3); the flags are read with the
-            sample count, so the check adds no host synchronisation. ValueError otherwise.
-            Training loops that make their own rays pass False (no extra launches).
+            the total, to keep the GPU busy through the sync (the trainer queues the previous
+            step's optimizer update there); it must not change the rays or the grid.
+        validate: check on the device that origins and directions are finite (with
+            ``unit_directions``, ``|d| = 1`` within 1e-3), read with the count (no extra sync);
+            ValueError otherwise. Loops that make their own rays pass False.
         unit_directions: with ``validate``, require unit directions (as ``render_rays`` does).
-        capacity: None sizes the output to the samples marched (the one host synchronisation);
-            an int gives exactly ``capacity`` rows without waiting for the count: rays past it
-            lose their tail (as with ``max_samples``), rows past ``ray_offsets[N]`` are padding
-            (ray index N, interval [0, 0], position and direction 0; composited with weight 0).
-            With ``validate`` the check's flags are still read, which synchronises.
+        capacity: None sizes the output to the count (the one host sync); an int gives that many
+            rows without the sync (unless ``validate``): the tail cut as by ``max_samples``, padding
+            rows past ``ray_offsets[N]`` (ray N, interval [0, 0], zeros; weight 0 when composited).
 
     Returns:
         :class:`RaySamples`.
