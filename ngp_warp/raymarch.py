@@ -265,8 +265,7 @@ def ray_marching(
         rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 directions (``t`` is measured in
             units of ``|d|``, so pass unit vectors for world-space steps); zero directions
             produce no samples.
-        grid: the occupancy grid, on the rays' device.
-        march: the ray interval, steps and caps (:class:`MarchOptions`).
+        grid: the occupancy grid, on the rays' device. march: :class:`MarchOptions`.
         before_sync: called once, after the count pass is queued and before the host waits for
             the total, to keep the GPU busy through the sync (the trainer queues the previous
             step's optimizer update there); it must not change the rays or the grid.
