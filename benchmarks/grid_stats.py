@@ -43,7 +43,7 @@ def sample_stats(trainer, n_rays: int = 1 << 16) -> dict:
     model, grid = trainer.model, trainer.grid
     rays_o, rays_d, _, _ = trainer.sample_batch(n_rays)
     with model.precision():
-        samples = ray_marching(rays_o, rays_d, grid, model._stratified, validate=False)
+        samples = ray_marching(rays_o, rays_d, grid, model.march_options(stratified=True), validate=False)
         sigmas = model.field.density(samples.positions).float().reshape(-1).contiguous()
     pruned = prune_samples(samples, sigmas, model.early_stop_eps).samples
     marched = samples.ray_offsets.diff()

@@ -74,6 +74,10 @@ class RadianceModel:
         march = MarchOptions(near=scene.near, far=FAR, step_size=step_size, cone_angle=cone_angle, max_step=max_step)
         return cls(field, grid, march, **settings)
 
+    def march_options(self, stratified: bool) -> MarchOptions:
+        """The model's march, with jittered first samples when ``stratified`` (both made once)."""
+        return self._stratified if stratified else self.march
+
     @property
     def device(self) -> torch.device:
         return self.field.aabb.device
@@ -123,7 +127,7 @@ class RadianceModel:
         :func:`ngp_warp.render_rays`, whose other keywords these are, with this model's march
         (``stratified``: jittered first samples) and early-stop threshold."""
         return render_rays(
-            rays_o, rays_d, self.grid, field_fn, self._stratified if stratified else self.march,
+            rays_o, rays_d, self.grid, field_fn, self.march_options(stratified),
             early_stop_eps=self.early_stop_eps, background=background,
             sigma_fn=sigma_fn, sample_capacity=sample_capacity,
             return_samples=return_samples, before_sync=before_sync, ray_images=ray_images,

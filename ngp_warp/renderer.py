@@ -22,8 +22,6 @@ What makes it fast, next to a training render of the same rays:
 
 from __future__ import annotations
 
-import dataclasses
-
 import torch
 
 from ngp_warp.cameras import generate_rays
@@ -115,8 +113,7 @@ def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tens
     ``n_marched``, ``n_shaded`` (samples through the colour MLP).
     """
     field, eps, n_rays = model.field, model.early_stop_eps, rays_o.shape[0]
-    march = dataclasses.replace(model.march, stratified=stratified)
-    samples = ray_marching(rays_o, rays_d, model.grid, march, validate=False)
+    samples = ray_marching(rays_o, rays_d, model.grid, model.march_options(stratified), validate=False)
     out = {"rgb": bg.expand(n_rays, 3).clone(), "opacity": torch.zeros(n_rays, device=rays_o.device),
            "depth": torch.zeros(n_rays, device=rays_o.device), "n_marched": samples.n_samples, "n_shaded": 0}
     if samples.n_samples == 0:
