@@ -30,12 +30,12 @@ def main(argv=None) -> None:
     iters = args.iters or (200 if args.device.startswith("cuda") else 5)
     torch.manual_seed(0)
     rows = [r for kind in ("sphere", "shell") for r in bench_scene(kind, args.device, args.samples, iters)]
-    head = f"{'scene':<7} {'op':<14} {'rays':>7} {'samples':>8} {'ms':>9} {'Mrays/s':>9} {'Msamples/s':>11}"
+    head = f"{'scene':<7} {'op':<16} {'rays':>7} {'samples':>8} {'ms':>9} {'Mrays/s':>9} {'Msamples/s':>11}"
     print(f"device: {args.device}" + (f" ({torch.cuda.get_device_name()})" if args.device.startswith("cuda") else ""))
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['scene']:<7} {r['op']:<14} {r['rays']:>7} {r['samples']:>8} {r['ms']:>9.3f} "
+        print(f"{r['scene']:<7} {r['op']:<16} {r['rays']:>7} {r['samples']:>8} {r['ms']:>9.3f} "
               f"{r['rays_per_s'] / 1e6:>9.2f} {r['samples_per_s'] / 1e6:>11.2f}")
     if args.json:
         with open(args.json, "w") as f:

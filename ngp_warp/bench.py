@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from ngp_warp import _wp
+from ngp_warp.graphs import capture_graph
 from ngp_warp.hashgrid import HashGridEncoding
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.raymarch import ray_marching
@@ -152,7 +153,8 @@ def bench_scene(kind: str, device: str, target_samples: int, iters: int) -> list
     ``march``, ``composite fwd``, ``composite bwd`` and ``march+fwd+bwd`` on as many rays of the
     scene ``kind`` as give about ``target_samples`` samples, each timed by :func:`timed`; and
     ``same, capacity``: all three with the march given a capacity 1/8 above the count (no host
-    synchronisation, so back-to-back calls overlap the host's work with the GPU's)."""
+    synchronisation, so back-to-back calls overlap the host's work with the GPU's); on CUDA
+    ``same, CUDA graph``: that call captured once and replayed (:func:`ngp_warp.graphs.capture_graph`)."""
     grid = scene_grid(kind, device)
     probe_o, probe_d = make_rays(1024, device)
     per_ray = max(ray_marching(probe_o, probe_d, grid, validate=False).n_samples / 1024, 1.0)
@@ -189,9 +191,12 @@ def bench_scene(kind: str, device: str, target_samples: int, iters: int) -> list
         rgb = composite_packed(sigmas_c, rgbs_c, m.t_starts, m.t_ends, m.ray_offsets, 1e-4)[0]
         torch.autograd.grad(rgb, (sigmas_c, rgbs_c), g_rgb)
 
+    ops = [("march", march), ("composite fwd", forward), ("composite bwd", backward),
+           ("march+fwd+bwd", total), ("same, capacity", total_no_sync)]
+    if device.startswith("cuda"):
+        ops.append(("same, CUDA graph", capture_graph(total_no_sync, device)[0].replay))
     rows = []
-    for op, fn in (("march", march), ("composite fwd", forward), ("composite bwd", backward),
-                   ("march+fwd+bwd", total), ("same, capacity", total_no_sync)):
+    for op, fn in ops:
         sec = timed(fn, iters, device)
         rows.append({"scene": kind, "op": op, "device": device, "rays": n_rays, "samples": s,
                      "ms": sec * 1e3, "rays_per_s": n_rays / sec, "samples_per_s": s / sec})
@@ -235,10 +240,10 @@ def run_kernel_bench(device: str, quick: bool) -> None:
     threads = "" if device.startswith("cuda") else f", {_wp.cpu_threads()} threads"
     print(f"device: {device} ({device_name(device)}{threads})")
     rows = kernel_bench_rows(device, config)
-    head = f"{'op':<15} {'N':>8} {'ms':>10} {'M items/s':>10}"
+    head = f"{'op':<16} {'N':>8} {'ms':>10} {'M items/s':>10}"
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['op']:<15} {r['n']:>8} {r['ms']:>10.3f} {r['items_per_s'] / 1e6:>10.2f}")
+        print(f"{r['op']:<16} {r['n']:>8} {r['ms']:>10.3f} {r['items_per_s'] / 1e6:>10.2f}")
     print("encode: hash grid L=16 F=2 T=2^19 on random points (items: points); march/composite: "
           "thin-shell scene (items: samples)")

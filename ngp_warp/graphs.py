@@ -1,4 +1,12 @@
-"""CUDA graphs for the no-gradient density pass of a training step, whose size varies.
+"""CUDA graphs: :func:`capture_graph` for any fixed-size work on ngp_warp's ops, and
+:class:`GraphedDensity` for the no-gradient density pass of a training step, whose size varies.
+
+Work whose host cost exceeds its GPU time (many small launches, an autograd backward) runs at
+device speed when replayed from a graph. ngp_warp's ops can be captured where they do not read
+a size back to the host: :func:`ngp_warp.ray_marching` with ``capacity=`` and
+``validate=False``, :func:`ngp_warp.composite` with ``validate=False`` (or ``composite_packed``)
+with its backward, :func:`ngp_warp.prune_samples` with ``capacity=``, and the hash grid. A
+stratified march draws its seed on the host, so its jitter repeats on every replay.
 
 The pass before pruning evaluates σ at every marched sample: about a dozen small launches whose
 host cost, not their GPU time, limits a step. :class:`GraphedDensity` pads the positions to a
@@ -13,6 +21,28 @@ from collections.abc import Callable
 import torch
 
 _MIN_BUCKET = 1 << 12
+
+
+def capture_graph(fn: Callable[[], object], device: torch.device | str, side: torch.cuda.Stream | None = None,
+                  pool=None) -> tuple[torch.cuda.CUDAGraph, object]:
+    """``fn()`` run once on a side stream (a warm-up, as torch's docs ask: kernels load, the
+    allocator settles), then captured in a CUDA graph.
+
+    Returns ``(graph, output)``: ``graph.replay()`` repeats ``fn``'s work on the tensors it read
+    (change them in place between replays) and writes into the same ``output`` tensors. Pass
+    ``side`` to reuse one warm-up stream (ngp_warp caches a Warp stream per torch stream) and
+    ``pool`` to share a memory pool between graphs.
+    """
+    device = torch.device(device)
+    side = side or torch.cuda.Stream(device=device)
+    side.wait_stream(torch.cuda.current_stream(device))
+    with torch.cuda.stream(side):
+        fn()
+    torch.cuda.current_stream(device).wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph, pool=pool):
+        output = fn()
+    return graph, output
 
 
 def bucket_size(n: int) -> int:
@@ -54,13 +84,6 @@ class GraphedDensity:
         inp = self.positions[:size]
         if self.side is None:  # one stream, so ngp_warp._wp caches one Warp stream for it
             self.side = torch.cuda.Stream(device=inp.device)
-        self.side.wait_stream(torch.cuda.current_stream(inp.device))
-        with torch.cuda.stream(self.side):  # warm-up off the capture (as torch's docs ask)
-            self.fn(inp)
-        torch.cuda.current_stream(inp.device).wait_stream(self.side)
         if self.pool is None:
             self.pool = torch.cuda.graph_pool_handle()
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph, pool=self.pool):
-            sigmas = self.fn(inp)
-        return graph, sigmas
+        return capture_graph(lambda: self.fn(inp), inp.device, self.side, self.pool)
