@@ -1,9 +1,11 @@
 """Benchmark the inference renderer: one view of a trained run at several resolutions.
 
 Each row renders the first test camera (its intrinsics scaled to the size) with
-:meth:`Trainer.render_image` (weight average, ``--supersample``² rays per pixel, default one),
+:meth:`Trainer.render_image` (weight average, ``--supersample``² rays per pixel, default one,
+each ``--first-round`` given),
 ``--repeats`` times after one warm-up, the device synchronised; it reports the median time,
-rays per second (pixels × sub-rays) and the marched and shaded samples per ray.
+rays per second (pixels × sub-rays) and the samples per ray marched, encoded (hash grid and
+density MLP) and shaded (colour MLP).
 
     python benchmarks/bench_view.py runs/lego --sizes 800x800 --device cuda
     python benchmarks/bench_view.py runs/fox --sizes 1920x1080 --device cuda
@@ -43,7 +45,8 @@ def demo_trainer(device: str, seconds: float, folder: Path) -> Trainer:
     return trainer
 
 
-def time_view(trainer: Trainer, width: int, height: int, repeats: int, supersample: int) -> dict:
+def time_view(trainer: Trainer, width: int, height: int, repeats: int, supersample: int,
+              first_round: int | None = 16) -> dict:
     split = trainer.scene.test
     scale = torch.tensor([width / split.width, height / split.height] * 2)
     c2w, intrinsics = split.c2w[0], split.intrinsics[0] * scale
@@ -51,7 +54,7 @@ def time_view(trainer: Trainer, width: int, height: int, repeats: int, supersamp
 
     def render() -> dict:
         out = trainer.render_image(c2w, intrinsics, width, height, distortion=distortion, fisheye=split.fisheye,
-                                   supersample=supersample)
+                                   supersample=supersample, first_round=first_round)
         if trainer.device.type == "cuda":
             torch.cuda.synchronize(trainer.device)
         return out
@@ -65,7 +68,8 @@ def time_view(trainer: Trainer, width: int, height: int, repeats: int, supersamp
     rays = width * height * supersample ** 2
     ms = statistics.median(times) * 1e3
     return {"size": f"{width}x{height}", "rays": rays, "ms": ms, "rays_per_s": rays / (ms / 1e3),
-            "marched_per_ray": out["n_marched"] / rays, "shaded_per_ray": out["n_shaded"] / rays}
+            "marched_per_ray": out["n_marched"] / rays, "encoded_per_ray": out["n_encoded"] / rays,
+            "shaded_per_ray": out["n_shaded"] / rays}
 
 
 def main(argv=None) -> None:
@@ -75,6 +79,8 @@ def main(argv=None) -> None:
     parser.add_argument("--sizes", nargs="+", type=size, default=[(100, 100), (200, 200)], metavar="WxH")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--supersample", type=int, default=1, help="rays per pixel: this squared (default 1)")
+    parser.add_argument("--first-round", type=int, nargs="+", default=[16], metavar="K",
+                        help="render_view's first_round, one row each (0: None, every marched sample at once)")
     parser.add_argument("--train-seconds", type=float, default=150.0, help="demo training budget (no run given)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -84,16 +90,18 @@ def main(argv=None) -> None:
         else:
             trainer = demo_trainer(args.device, args.train_seconds, Path(tmp))
             what = f"demo scene, {trainer.step_count} steps in {trainer.train_seconds:.0f} s"
-        rows = [time_view(trainer, w, h, args.repeats, args.supersample) for w, h in args.sizes]
+        rows = [{**time_view(trainer, w, h, args.repeats, args.supersample, k or None), "first_round": k}
+                for w, h in args.sizes for k in args.first_round]
     name = torch.cuda.get_device_name(trainer.device) if trainer.device.type == "cuda" else f"{torch.get_num_threads()} CPU threads"
     print(f"{what}; {trainer.device} ({name}); {args.supersample}² rays per pixel; "
           f"median of {args.repeats}")
-    head = f"{'size':>10} {'rays':>9} {'ms/view':>9} {'Mrays/s':>8} {'marched/ray':>12} {'shaded/ray':>11}"
+    head = (f"{'size':>10} {'1st round':>9} {'rays':>9} {'ms/view':>9} {'Mrays/s':>8} {'marched/ray':>12} "
+            f"{'encoded/ray':>12} {'shaded/ray':>11}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['size']:>10} {r['rays']:>9} {r['ms']:>9.1f} {r['rays_per_s'] / 1e6:>8.3f} "
-              f"{r['marched_per_ray']:>12.1f} {r['shaded_per_ray']:>11.1f}")
+        print(f"{r['size']:>10} {r['first_round'] or '-':>9} {r['rays']:>9} {r['ms']:>9.1f} {r['rays_per_s'] / 1e6:>8.3f} "
+              f"{r['marched_per_ray']:>12.1f} {r['encoded_per_ray']:>12.1f} {r['shaded_per_ray']:>11.1f}")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
     python benchmarks/profile_view.py RUN [--size 800x800] [--repeats 5] [--top 12]
 
-Renders the first test camera of the trained run ``RUN`` (as ``bench_view.py`` does) once to
+Renders the first test camera of the trained run ``RUN`` (as ``bench_view.py`` does, one ray
+per pixel) once to
 warm up, then ``--repeats`` times under torch.profiler (CUDA activity, Warp's kernels included).
 Prints the wall-clock per view, the device time per view summed over all kernels, and the
 kernels that take the most of it (name, ms per view, launches per view). Wall minus device is
@@ -29,6 +30,7 @@ def main() -> None:
     ap.add_argument("--size", default="800x800", help="WxH")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--top", type=int, default=12)
+    ap.add_argument("--first-round", type=int, default=16, help="render_view's first_round (0: None)")
     args = ap.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
     trainer = load_trainer(Path(args.run) / CHECKPOINT, device="cuda")[0]
@@ -38,7 +40,7 @@ def main() -> None:
 
     def render() -> dict:
         return trainer.render_image(split.c2w[0], intrinsics, width, height, distortion=distortion,
-                                    fisheye=split.fisheye)
+                                    fisheye=split.fisheye, supersample=1, first_round=args.first_round or None)
 
     out = render()
     torch.cuda.synchronize()
@@ -59,7 +61,8 @@ def main() -> None:
             launches[event.name[:60]] += 1 / args.repeats
     rays = width * height
     print(f"{args.run} {width}x{height}: wall {wall * 1e3:.2f} ms/view, device {sum(per_kernel.values()):.2f} ms/view, "
-          f"marched/ray {out['n_marched'] / rays:.1f}, shaded/ray {out['n_shaded'] / rays:.1f}")
+          f"first round {args.first_round or '-'}, marched/ray {out['n_marched'] / rays:.1f}, "
+          f"encoded/ray {out['n_encoded'] / rays:.1f}, shaded/ray {out['n_shaded'] / rays:.1f}")
     print(f"{'kernel':<60} {'ms/view':>8} {'launches':>8}")
     for name, ms in per_kernel.most_common(args.top):
         print(f"{name:<60} {ms:>8.3f} {launches[name]:>8.1f}")

@@ -7,20 +7,24 @@ What makes it fast, next to a training render of the same rays:
 
 * no autograd at all (``torch.inference_mode``), the field in eval mode;
 * the occupancy grid skips empty space (the march's DDA), and each marched sample is encoded
-  once: the hash grid and density MLP run on every marched sample
-  (:meth:`~ngp_warp.field.NGPField.geometry`, σ and the MLP's whole output h), and only the
-  samples in front of the early-termination point (transmittance ≥ the model's
+  at most once: the hash grid and density MLP (:meth:`~ngp_warp.field.NGPField.geometry`, σ
+  and the MLP's whole output h) run on each ray's first ``first_round`` marched samples, then
+  on the rest of the samples of the rays whose transmittance after those is still ≥ half the
+  model's ``early_stop_eps`` (early ray termination: samples behind an opaque surface are
+  never encoded; the others get σ = 0, and as they lie behind the early-termination point
+  nothing reads them). Only the samples in front of that point (transmittance ≥
   ``early_stop_eps``, :func:`ngp_warp.prune_samples`) take their h on through the colour
-  network (:meth:`~ngp_warp.field.NGPField.colour`). (A training render's ``sigma_fn``
-  pruning encodes the kept samples twice, once per pass.)
+  network (:meth:`~ngp_warp.field.NGPField.colour`). The image equals a one-pass render's.
 * the MLPs in the model's precision (bf16 on GPUs, :meth:`RadianceModel.precision`);
 * rays are generated once per image, the outputs are written into buffers allocated once, and
   the chunks are as large as memory allows: their size adapts to the samples per ray of the
-  chunks already rendered (:class:`ChunkSizer`), so a view takes a few chunks, each with the
-  march's and the pruning's one host synchronisation.
+  chunks already rendered (:class:`ChunkSizer`), so a view takes a few chunks, each with four
+  host synchronisations (the march's, the two rounds', the pruning's).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -54,8 +58,12 @@ class ChunkSizer:
         self.sample_budget = int(sample_budget)
         self.samples_per_ray = float(first_guess) / 1.5
 
-    def next_size(self) -> int:
-        return max(MIN_CHUNK, int(self.sample_budget / (1.5 * max(self.samples_per_ray, 1.0))))
+    def next_size(self, remaining: int) -> int:
+        """Rays in the next chunk, ``remaining`` rays left: all of them when they are at most a
+        quarter more than the budget's share (no small last chunk, whose syncs cost more than
+        its work), else that share."""
+        size = max(MIN_CHUNK, int(self.sample_budget / (1.5 * max(self.samples_per_ray, 1.0))))
+        return remaining if remaining <= size + size // 4 else size
 
     def observe(self, n_rays: int, n_marched: int) -> None:
         if n_rays > 0:
@@ -104,22 +112,47 @@ def _marched_rows(marched_offsets: torch.Tensor, kept: RaySamples) -> torch.Tens
     return shift[kept.ray_indices] + torch.arange(kept.n_samples, device=shift.device)
 
 
+def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
+    """σ [S] float32 and h [S, G] of the S marched samples, in one pass, or in two rounds (see
+    the module) when ``first_round`` is set, ``eps`` > 0 and some ray has more samples than
+    that. Rows never encoded have σ = 0 and unset h. Also returns the host int rows encoded."""
+    n_rays, n_samples = samples.ray_offsets.shape[0] - 1, samples.n_samples
+    if first_round is None or eps <= 0 or n_samples <= n_rays * first_round:
+        return (*field.geometry(samples.positions), n_samples)
+    rays = samples.ray_indices
+    in_ray = torch.arange(n_samples, device=rays.device) - samples.ray_offsets[:-1].long()[rays]
+    front = in_ray < first_round
+    rows = front.nonzero().squeeze(1)  # a host sync, as is the next nonzero
+    sigma = torch.zeros(n_samples, device=rays.device)
+    sigma_front, h_front = field.geometry(samples.positions[rows])
+    h = h_front.new_empty(n_samples, h_front.shape[1])
+    sigma[rows], h[rows] = sigma_front, h_front
+    optical_depth = torch.zeros(n_rays, device=rays.device).index_add_(
+        0, rays[rows], sigma_front * (samples.t_ends[rows] - samples.t_starts[rows]))
+    alive = optical_depth < -math.log(eps / 2)  # half eps: prune's own rounding cannot keep an unset row
+    rest = (~front & alive[rays]).nonzero().squeeze(1)
+    if rest.numel() > 0:
+        sigma[rest], h[rest] = field.geometry(samples.positions[rest])
+    return sigma, h, rows.numel() + rest.numel()
+
+
 def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor,
-                  stratified: bool, appearance_code: torch.Tensor | None) -> dict:
-    """One chunk of N rays (see the module): march, σ and h of every marched sample, prune, the
-    colour MLP on the kept samples' h, composite over ``bg`` [3].
+                  stratified: bool, appearance_code: torch.Tensor | None, first_round: int | None) -> dict:
+    """One chunk of N rays (see the module): march, σ and h of the marched samples (:func:`_geometry`),
+    prune, the colour MLP on the kept samples' h, composite over ``bg`` [3].
 
     Returns ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] float32 and host ints
-    ``n_marched``, ``n_shaded`` (samples through the colour MLP).
+    ``n_marched``, ``n_encoded`` (through the density MLP), ``n_shaded`` (through the colour MLP).
     """
     field, eps, n_rays = model.field, model.early_stop_eps, rays_o.shape[0]
     samples = ray_marching(rays_o, rays_d, model.grid, model.march_options(stratified), validate=False)
     out = {"rgb": bg.expand(n_rays, 3).clone(), "opacity": torch.zeros(n_rays, device=rays_o.device),
-           "depth": torch.zeros(n_rays, device=rays_o.device), "n_marched": samples.n_samples, "n_shaded": 0}
+           "depth": torch.zeros(n_rays, device=rays_o.device), "n_marched": samples.n_samples, "n_encoded": 0,
+           "n_shaded": 0}
     if samples.n_samples == 0:
         return out
     with model.precision():
-        sigma, h = field.geometry(samples.positions)
+        sigma, h, out["n_encoded"] = _geometry(field, samples, eps, first_round)
         kept = prune_samples(samples, sigma, eps).samples
         out["n_shaded"] = kept.n_samples
         if kept.n_samples == 0:  # early_stop_eps > 1: nothing composites
@@ -136,7 +169,7 @@ def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tens
 def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, *,
                 distortion: torch.Tensor | None = None, fisheye: bool = False, background: float = 1.0,
                 chunk: int | None = None, spp: int = 1, supersample: int = 1,
-                appearance_code: torch.Tensor | None = None) -> dict:
+                appearance_code: torch.Tensor | None = None, first_round: int | None = 16) -> dict:
     """Render one camera with the model's field in eval mode.
 
     Each pixel is the mean of ``supersample``² rays through its sub-pixel centres (the grid of
@@ -159,11 +192,13 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     Returns:
         dict with ``rgb`` [H, W, 3] float32 in [0, 1], ``depth`` and ``opacity`` [H, W] float32
         (depth is Σ w t: divide by opacity for the surface distance), and host ints
-        ``n_marched`` (samples marched) and ``n_shaded`` (samples through the colour network).
+        ``n_marched`` (samples marched), ``n_encoded`` (through the hash grid and density MLP) and
+        ``n_shaded`` (through the colour network).
     """
     _check_camera(c2w, intrinsics, distortion, width, height, spp, supersample, fisheye)
-    if chunk is not None and not (isinstance(chunk, int) and chunk >= 1):
-        raise ValueError(f"chunk must be None or a positive integer, got {chunk!r}")
+    for name, value in (("chunk", chunk), ("first_round", first_round)):
+        if value is not None and not (isinstance(value, int) and value >= 1):
+            raise ValueError(f"{name} must be None or a positive integer, got {value!r}")
     code = model.field.appearance_code(appearance_code)
     if model.field.training:
         model.field.eval()
@@ -179,19 +214,19 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     sizer = None if chunk is not None else ChunkSizer(
         sample_budget(dev), 1.5 * model.view_samples_per_ray if model.view_samples_per_ray else 64.0)
     shifts = subpixel_offsets(supersample)
-    counts = {"n_marched": 0, "n_shaded": 0}
+    counts = {"n_marched": 0, "n_encoded": 0, "n_shaded": 0}
     for dx, dy in shifts:
         rays_o, rays_d = generate_rays(cams, intr, dist, px + dx, py + dy, fisheye=fisheye)
         for _ in range(spp):
             lo = 0
             while lo < n:
-                hi = min(n, lo + (chunk or sizer.next_size()))
-                out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], bg, spp > 1, code)
+                hi = min(n, lo + (chunk or sizer.next_size(n - lo)))
+                out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], bg, spp > 1, code, first_round)
                 rgb[lo:hi] += out["rgb"]
                 depth[lo:hi] += out["depth"]
                 opacity[lo:hi] += out["opacity"]
-                counts["n_marched"] += out["n_marched"]
-                counts["n_shaded"] += out["n_shaded"]
+                for key in counts:
+                    counts[key] += out[key]
                 if sizer is not None:
                     sizer.observe(hi - lo, out["n_marched"])
                 lo = hi

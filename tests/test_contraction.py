@@ -142,9 +142,19 @@ def test_cuda_matches_cpu(kind):
     p = _world(_points(), BOX)
     d = torch.nn.functional.normalize(torch.randn(len(p), 3), dim=-1)
     box = BOX.cuda()
+    y = C.contract(p, kind, BOX)
     for cpu, gpu in (
-        (C.contract(p, kind, BOX), C.contract(p.cuda(), kind, box)),
-        (C.uncontract(C.contract(p, kind, BOX), kind, BOX), C.uncontract(C.contract(p, kind, BOX).cuda(), kind, box)),
+        (y, C.contract(p.cuda(), kind, box)),
         (C.world_step_length(p, d, 0.01, kind, BOX), C.world_step_length(p.cuda(), d.cuda(), 0.01, kind, box)),
     ):
         assert torch.allclose(cpu, gpu.cpu(), rtol=1e-5, atol=1e-6)
+    # The inverse is ill-conditioned near the radius-2 boundary (an ulp of ‖y‖ there moves the
+    # world point by ~2^-23 / (2 − ‖y‖) of its distance): compare it in world space where
+    # 2 − ‖y‖ ≥ 0.01, and everywhere through the contraction (the two backends' world points
+    # contract to the same y).
+    back_cpu, back_gpu = C.uncontract(y, kind, BOX), C.uncontract(y.cuda(), kind, box).cpu()
+    radius = y.norm(dim=-1) if kind == "l2" else y.abs().amax(-1)
+    tame = radius <= 1.99
+    assert tame.sum() > len(p) // 2 and (~tame).sum() > 100
+    assert torch.allclose(back_cpu[tame], back_gpu[tame], rtol=1e-5, atol=1e-6)
+    assert torch.allclose(C.contract(back_gpu, kind, BOX), C.contract(back_cpu, kind, BOX), rtol=0, atol=1e-5)

@@ -67,20 +67,21 @@ def assert_same_image(out, want):
     torch.testing.assert_close(out["depth"].reshape(-1), want["depth"], rtol=1e-5, atol=1e-4)
 
 
-def denser_field(field):
-    """A copy of ``field`` whose log-density grows by the sum of its last hidden activations (≥ 0)."""
+def denser_field(field, bump: float):
+    """A copy of ``field`` whose log-density grows by ``bump`` × the sum of its last hidden
+    activations (≥ 0)."""
     dense = copy.deepcopy(field)
     with torch.no_grad():
-        dense.density_mlp[-1].weight[0] += 5.0
+        dense.density_mlp[-1].weight[0] += bump
     return dense
 
 
-@pytest.mark.parametrize("dense", [False, True])
-def test_render_view_equals_a_plain_render_and_shades_fewer_samples(trainer, dense):
+@pytest.mark.parametrize("first_round", [None, 4, 16])
+@pytest.mark.parametrize("bump", [0.0, 2.5, 5.0])  # trained; partly opaque; opaque within 4 samples
+def test_render_view_equals_a_plain_render_and_shades_fewer_samples(trainer, bump, first_round):
     c2w, intr = camera(trainer)
-    field = denser_field(trainer.field) if dense else trainer.field
-    model = RadianceModel(field, trainer.grid, trainer.model.march)
-    out = render_view(model, c2w, intr, W, H, background=0.25)
+    model = RadianceModel(denser_field(trainer.field, bump), trainer.grid, trainer.model.march)
+    out = render_view(model, c2w, intr, W, H, background=0.25, first_round=first_round)
     rays = pixel_rays(c2w, intr)
     want = plain_render(model, *rays, 0.25)
     assert float(want["opacity"].max()) > 0.5  # not an empty view
@@ -89,9 +90,14 @@ def test_render_view_equals_a_plain_render_and_shades_fewer_samples(trainer, den
     assert_same_image(out, two_pass)
     assert out["n_marched"] == want["n_samples"] == two_pass["n_marched"]
     assert out["n_shaded"] == two_pass["n_samples"]
-    assert 0 < out["n_shaded"] <= out["n_marched"]
-    if dense:  # opaque rays end early: their samples behind it skip the colour pass (after 60
+    assert 0 < out["n_shaded"] <= out["n_encoded"] <= out["n_marched"]
+    assert first_round is not None or out["n_encoded"] == out["n_marched"]
+    if bump == 5.0:  # opaque rays end early: their samples behind it skip the colour pass (after 60
         assert out["n_shaded"] < 0.8 * out["n_marched"]  # steps hardly any ray is that opaque)
+        # ... and with rounds the density pass: every ray ends within its first round
+        assert first_round is None or out["n_encoded"] == first_round * W * H
+    if bump == 2.5 and first_round == 16:  # some rays end within 16 samples, the others go on
+        assert first_round * W * H < out["n_encoded"] < 0.5 * out["n_marched"]
 
 
 @pytest.mark.parametrize("chunk", [1, 37, 4096])
@@ -142,13 +148,14 @@ def test_bad_arguments_are_refused(trainer, kwargs, message):
 
 def test_chunk_sizer_follows_the_densest_chunk():
     sizer = ChunkSizer(1 << 24, first_guess=64.0)
-    assert sizer.next_size() == (1 << 24) // 64
+    assert sizer.next_size(10**9) == (1 << 24) // 64
     sizer.observe(1000, 8000)  # 8 samples per ray: below the guess, the guess stays
-    assert sizer.next_size() == (1 << 24) // 64
+    assert sizer.next_size(10**9) == (1 << 24) // 64
     sizer.observe(1000, 256_000)
-    assert sizer.next_size() == int((1 << 24) / (1.5 * 256))
+    assert sizer.next_size(10**9) == int((1 << 24) / (1.5 * 256))
     sizer.observe(10, 10**9)
-    assert sizer.next_size() == 1 << 12
+    assert sizer.next_size(10**9) == 1 << 12
+    assert sizer.next_size(5120) == 5120 and sizer.next_size(5121) == 4096  # a quarter more, not a tail chunk
 
 
 def test_the_next_view_starts_from_the_last_views_samples_per_ray(trainer, monkeypatch):
@@ -175,7 +182,7 @@ def test_the_next_view_starts_from_the_last_views_samples_per_ray(trainer, monke
 def test_kept_samples_take_their_rows_of_the_marched_samples(trainer):
     """The gather from marched to kept samples: kept samples of a ray are a prefix of its
     marched ones, and rays behind pruned samples start later in the kept rows."""
-    model = RadianceModel(denser_field(trainer.field), trainer.grid, trainer.model.march)
+    model = RadianceModel(denser_field(trainer.field, 5.0), trainer.grid, trainer.model.march)
     samples = ray_marching(*pixel_rays(*camera(trainer)), model.grid, model.march)
     with torch.no_grad():
         sigma = model.field.density(samples.positions)
