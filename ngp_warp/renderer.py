@@ -30,6 +30,7 @@ import torch
 
 from ngp_warp.cameras import generate_rays
 from ngp_warp.composite import composite_packed
+from ngp_warp.gather import gather_rows, scatter_rows
 from ngp_warp.model import RadianceModel
 from ngp_warp.prune import prune_samples
 from ngp_warp.raymarch import RaySamples, ray_marching
@@ -109,7 +110,7 @@ def _marched_rows(marched_offsets: torch.Tensor, kept: RaySamples) -> torch.Tens
     marched_offsets: [n_rays + 1] int32 offsets of the marched samples. kept: the pruned samples.
     """
     shift = (marched_offsets[:-1] - kept.ray_offsets[:-1]).long()
-    return shift[kept.ray_indices] + torch.arange(kept.n_samples, device=shift.device)
+    return gather_rows(shift, kept.ray_indices) + torch.arange(kept.n_samples, device=shift.device)
 
 
 def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
@@ -120,19 +121,22 @@ def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
     if first_round is None or eps <= 0 or n_samples <= n_rays * first_round:
         return (*field.geometry(samples.positions), n_samples)
     rays = samples.ray_indices
-    in_ray = torch.arange(n_samples, device=rays.device) - samples.ray_offsets[:-1].long()[rays]
+    in_ray = torch.arange(n_samples, device=rays.device) - gather_rows(samples.ray_offsets, rays)
     front = in_ray < first_round
     rows = front.nonzero().squeeze(1)  # a host sync, as is the next nonzero
     sigma = torch.zeros(n_samples, device=rays.device)
-    sigma_front, h_front = field.geometry(samples.positions[rows])
+    sigma_front, h_front = field.geometry(gather_rows(samples.positions, rows))
     h = h_front.new_empty(n_samples, h_front.shape[1])
-    sigma[rows], h[rows] = sigma_front, h_front
-    optical_depth = torch.zeros(n_rays, device=rays.device).index_add_(
-        0, rays[rows], sigma_front * (samples.t_ends[rows] - samples.t_starts[rows]))
+    scatter_rows(sigma, rows, sigma_front)
+    scatter_rows(h, rows, h_front)
+    lengths = gather_rows(samples.t_ends, rows) - gather_rows(samples.t_starts, rows)
+    optical_depth = torch.zeros(n_rays, device=rays.device).index_add_(0, gather_rows(rays, rows), sigma_front * lengths)
     alive = optical_depth < -math.log(eps / 2)  # half eps: prune's own rounding cannot keep an unset row
     rest = (~front & alive[rays]).nonzero().squeeze(1)
     if rest.numel() > 0:
-        sigma[rest], h[rest] = field.geometry(samples.positions[rest])
+        sigma_rest, h_rest = field.geometry(gather_rows(samples.positions, rest))
+        scatter_rows(sigma, rest, sigma_rest)
+        scatter_rows(h, rest, h_rest)
     return sigma, h, rows.numel() + rest.numel()
 
 
@@ -158,8 +162,8 @@ def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tens
         if kept.n_samples == 0:  # early_stop_eps > 1: nothing composites
             return out
         rows = _marched_rows(samples.ray_offsets, kept)
-        rgbs = field.colour(h[rows], kept.directions, appearance_code)
-    rgb, out["opacity"], out["depth"], _ = composite_packed(sigma[rows], rgbs, kept.t_starts, kept.t_ends,
+        rgbs = field.colour(gather_rows(h, rows), kept.directions, appearance_code)
+    rgb, out["opacity"], out["depth"], _ = composite_packed(gather_rows(sigma, rows), rgbs, kept.t_starts, kept.t_ends,
                                                             kept.ray_offsets, eps)
     out["rgb"] = rgb + bg * (1.0 - out["opacity"])[:, None]
     return out

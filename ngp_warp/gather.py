@@ -1,0 +1,61 @@
+"""Row gathers and scatters for the inference renderer: ``src[rows]`` and ``dst[rows] = values``
+in one Warp launch of one thread per 4-byte word (see :mod:`ngp_warp.kernels.gather`).
+
+torch's own advanced indexing moves narrow rows (a sample's 16 bf16 features, its 12-byte
+position) with one thread per row or per element, well below the memory's bandwidth on a GPU
+(RESULTS.md, session 13). No gradient flows through these.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ngp_warp import _wp
+from ngp_warp.kernels import gather as K
+
+_MAX_WORDS = 2**31 - 1  # Warp indexes with int32
+
+
+def _words(t: torch.Tensor) -> int | None:
+    """4-byte words per row of contiguous ``t`` ([N, ...]), or None when its rows are not whole
+    words or it has too many words for int32 indexing."""
+    row_bytes = t.element_size() * (t[0].numel() if t.dim() > 1 else 1)
+    if not t.is_contiguous() or row_bytes % 4 or t.numel() * t.element_size() // 4 > _MAX_WORDS:
+        return None
+    return row_bytes // 4
+
+
+def _check(name: str, t: torch.Tensor, rows: torch.Tensor) -> None:
+    if not isinstance(t, torch.Tensor) or t.dim() < 1:
+        raise ValueError(f"{name} must be a tensor of rows, got {getattr(t, 'shape', type(t).__name__)}")
+    if not isinstance(rows, torch.Tensor) or rows.dim() != 1 or rows.dtype != torch.int64 or rows.device != t.device:
+        raise ValueError(f"rows must be a 1-D int64 tensor on {t.device}, got "
+                         f"{getattr(rows, 'dtype', type(rows).__name__)} {tuple(getattr(rows, 'shape', ()))}")
+
+
+def gather_rows(src: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """``src[rows]``: src [N, ...] any dtype, rows [K] int64 in [0, N) (not checked) → [K, ...].
+    Rows that are not whole 4-byte words go through torch's indexing."""
+    _check("src", src, rows)
+    words = _words(src)
+    if words is None or rows.shape[0] * words > _MAX_WORDS:
+        return src[rows]
+    out = torch.empty((rows.shape[0], *src.shape[1:]), dtype=src.dtype, device=src.device)
+    _wp.launch(K.gather_words, rows.shape[0] * words,
+               [src.reshape(-1).view(torch.int32), rows, words, out.reshape(-1).view(torch.int32)], _wp.device_of(src))
+    return out
+
+
+def scatter_rows(dst: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) -> None:
+    """``dst[rows] = values`` in place: dst [N, ...], rows [K] int64, distinct, in [0, N) (not
+    checked), values [K, ...] of dst's dtype and row shape."""
+    _check("dst", dst, rows)
+    if values.dtype != dst.dtype or tuple(values.shape) != (rows.shape[0], *dst.shape[1:]):
+        raise ValueError(f"values must be {dst.dtype} {[rows.shape[0], *dst.shape[1:]]}, "
+                         f"got {values.dtype} {list(values.shape)}")
+    words = _words(dst)
+    if words is None or not values.is_contiguous() or rows.shape[0] * words > _MAX_WORDS:
+        dst[rows] = values
+        return
+    _wp.launch(K.scatter_words, rows.shape[0] * words,
+               [values.reshape(-1).view(torch.int32), rows, words, dst.reshape(-1).view(torch.int32)], _wp.device_of(dst))
