@@ -29,8 +29,13 @@ from ngp_warp.checkpoint import load_trainer
 from ngp_warp.cli import CHECKPOINT
 from ngp_warp.demo import demo_config
 from ngp_warp.data import load_scene
+from ngp_warp.renderer import auto_first_round
 from ngp_warp.scene import write_demo_scene
 from ngp_warp.trainer import Trainer
+
+
+def first_round(text: str) -> int | str:
+    return text if text == "auto" else int(text)
 
 
 def size(text: str) -> tuple[int, int]:
@@ -46,7 +51,7 @@ def demo_trainer(device: str, seconds: float, folder: Path) -> Trainer:
 
 
 def time_view(trainer: Trainer, width: int, height: int, repeats: int, supersample: int,
-              first_round: int | None = 16) -> dict:
+              first_round: int | str | None = "auto") -> dict:
     split = trainer.scene.test
     scale = torch.tensor([width / split.width, height / split.height] * 2)
     c2w, intrinsics = split.c2w[0], split.intrinsics[0] * scale
@@ -79,8 +84,9 @@ def main(argv=None) -> None:
     parser.add_argument("--sizes", nargs="+", type=size, default=[(100, 100), (200, 200)], metavar="WxH")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--supersample", type=int, default=1, help="rays per pixel: this squared (default 1)")
-    parser.add_argument("--first-round", type=int, nargs="+", default=[16], metavar="K",
-                        help="render_view's first_round, one row each (0: None, every marched sample at once)")
+    parser.add_argument("--first-round", type=first_round, nargs="+", default=["auto"], metavar="K",
+                        help="render_view's first_round, one row each: auto (default), a count, or 0 (None: "
+                             "every marched sample at once)")
     parser.add_argument("--train-seconds", type=float, default=150.0, help="demo training budget (no run given)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -90,17 +96,18 @@ def main(argv=None) -> None:
         else:
             trainer = demo_trainer(args.device, args.train_seconds, Path(tmp))
             what = f"demo scene, {trainer.step_count} steps in {trainer.train_seconds:.0f} s"
-        rows = [{**time_view(trainer, w, h, args.repeats, args.supersample, k or None), "first_round": k}
+        rows = [{**time_view(trainer, w, h, args.repeats, args.supersample, k or None),
+                 "first_round": k if k != "auto" else f"auto {auto_first_round(trainer.model.view_shaded_per_ray)}"}
                 for w, h in args.sizes for k in args.first_round]
     name = torch.cuda.get_device_name(trainer.device) if trainer.device.type == "cuda" else f"{torch.get_num_threads()} CPU threads"
     print(f"{what}; {trainer.device} ({name}); {args.supersample}² rays per pixel; "
           f"median of {args.repeats}")
-    head = (f"{'size':>10} {'1st round':>9} {'rays':>9} {'ms/view':>9} {'Mrays/s':>8} {'marched/ray':>12} "
+    head = (f"{'size':>10} {'1st round':>10} {'rays':>9} {'ms/view':>9} {'Mrays/s':>8} {'marched/ray':>12} "
             f"{'encoded/ray':>12} {'shaded/ray':>11}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['size']:>10} {r['first_round'] or '-':>9} {r['rays']:>9} {r['ms']:>9.1f} {r['rays_per_s'] / 1e6:>8.3f} "
+        print(f"{r['size']:>10} {r['first_round'] or '-':>10} {r['rays']:>9} {r['ms']:>9.1f} {r['rays_per_s'] / 1e6:>8.3f} "
               f"{r['marched_per_ray']:>12.1f} {r['encoded_per_ray']:>12.1f} {r['shaded_per_ray']:>11.1f}")
 
 

@@ -30,9 +30,10 @@ def main() -> None:
     ap.add_argument("--size", default="800x800", help="WxH")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--top", type=int, default=12)
-    ap.add_argument("--first-round", type=int, default=16, help="render_view's first_round (0: None)")
+    ap.add_argument("--first-round", default="auto", help="render_view's first_round: auto, a count, or 0 (None)")
     args = ap.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
+    first_round = args.first_round if args.first_round == "auto" else int(args.first_round) or None
     trainer = load_trainer(Path(args.run) / CHECKPOINT, device="cuda")[0]
     split = trainer.scene.test
     intrinsics = split.intrinsics[0] * torch.tensor([width / split.width, height / split.height] * 2)
@@ -40,7 +41,7 @@ def main() -> None:
 
     def render() -> dict:
         return trainer.render_image(split.c2w[0], intrinsics, width, height, distortion=distortion,
-                                    fisheye=split.fisheye, supersample=1, first_round=args.first_round or None)
+                                    fisheye=split.fisheye, supersample=1, first_round=first_round)
 
     out = render()
     torch.cuda.synchronize()

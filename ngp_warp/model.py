@@ -44,6 +44,9 @@ class RadianceModel:
         # the most marched samples per ray the last rendered view had: the next view's first
         # chunk is sized by it (see ngp_warp.renderer.ChunkSizer), None before any view
         self.view_samples_per_ray: float | None = None
+        # the mean samples per ray the last view shaded: the next view's first round of
+        # encoding is sized by it (see ngp_warp.renderer.auto_first_round), None before any view
+        self.view_shaded_per_ray: float | None = None
 
     @classmethod
     def for_scene(cls, scene: Scene, field_config: FieldConfig, device: torch.device, *, grid_resolution: int,

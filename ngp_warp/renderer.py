@@ -113,6 +113,19 @@ def _marched_rows(marched_offsets: torch.Tensor, kept: RaySamples) -> torch.Tens
     return gather_rows(shift, kept.ray_indices) + torch.arange(kept.n_samples, device=shift.device)
 
 
+FIRST_ROUND = 16  # render_view's first round before any view (and its least)
+
+
+def auto_first_round(shaded_per_ray: float | None) -> int:
+    """``first_round`` from the mean samples per ray the model's last view shaded (None before
+    any view): 1.5 times that, rounded up to a multiple of 8, at least :data:`FIRST_ROUND`. On
+    an H200 (RESULTS.md, session 13) lego (5.2 shaded per ray) rendered fastest with 16 and fox
+    (20.1) with 32 of the values tried."""
+    if shaded_per_ray is None:
+        return FIRST_ROUND
+    return max(FIRST_ROUND, 8 * math.ceil(1.5 * shaded_per_ray / 8))
+
+
 def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
     """σ [S] float32 and h [S, G] of the S marched samples, in one pass, or in two rounds (see
     the module) when ``first_round`` is set, ``eps`` > 0 and some ray has more samples than
@@ -173,7 +186,7 @@ def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tens
 def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, *,
                 distortion: torch.Tensor | None = None, fisheye: bool = False, background: float = 1.0,
                 chunk: int | None = None, spp: int = 1, supersample: int = 1,
-                appearance_code: torch.Tensor | None = None, first_round: int | None = 16) -> dict:
+                appearance_code: torch.Tensor | None = None, first_round: int | str | None = "auto") -> dict:
     """Render one camera with the model's field in eval mode.
 
     Each pixel is the mean of ``supersample``² rays through its sub-pixel centres (the grid of
@@ -200,9 +213,12 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
         ``n_shaded`` (through the colour network).
     """
     _check_camera(c2w, intrinsics, distortion, width, height, spp, supersample, fisheye)
-    for name, value in (("chunk", chunk), ("first_round", first_round)):
+    for name, value in (("chunk", chunk), ("first_round", None if first_round == "auto" else first_round)):
         if value is not None and not (isinstance(value, int) and value >= 1):
-            raise ValueError(f"{name} must be None or a positive integer, got {value!r}")
+            raise ValueError(f"{name} must be None or a positive integer{', or auto' * (name == 'first_round')}, "
+                             f"got {value!r}")
+    if first_round == "auto":
+        first_round = auto_first_round(model.view_shaded_per_ray)
     code = model.field.appearance_code(appearance_code)
     if model.field.training:
         model.field.eval()
@@ -236,6 +252,7 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
                 lo = hi
     if sizer is not None:
         model.view_samples_per_ray = sizer.samples_per_ray
+    model.view_shaded_per_ray = counts["n_shaded"] / (n * len(shifts) * spp)
     scale = 1.0 / (len(shifts) * spp)
     return {
         "rgb": rgb.mul_(scale).clamp_(0, 1).reshape(height, width, 3),

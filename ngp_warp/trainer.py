@@ -225,7 +225,7 @@ class Trainer:
     def render_image(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                      distortion: torch.Tensor | None = None, background: float = 1.0, chunk: int | None = None,
                      spp: int = 1, fisheye: bool = False, supersample: int | None = None,
-                     appearance_code: torch.Tensor | None = None, first_round: int | None = 16) -> dict:
+                     appearance_code: torch.Tensor | None = None, first_round: int | str | None = "auto") -> dict:
         """:func:`ngp_warp.renderer.render_view` of one camera with the weight average (when
         on) and the training pixels' sub-pixel grid: [3, 4] c2w, [4] fx fy cx cy, optional [6]
         k1 k2 k3 k4 p1 p2 distortion (``fisheye``: OpenCV's fisheye lens) → rgb [H, W, 3],

@@ -15,7 +15,7 @@ from ngp_warp.field import FieldConfig, NGPField
 from ngp_warp.model import RadianceModel
 from ngp_warp.prune import prune_samples
 from ngp_warp.raymarch import ray_marching
-from ngp_warp.renderer import ChunkSizer, _marched_rows, render_view
+from ngp_warp.renderer import ChunkSizer, _marched_rows, auto_first_round, render_view
 from ngp_warp.scene import write_demo_scene
 from ngp_warp.trainer import Trainer
 
@@ -137,6 +137,7 @@ def test_training_goes_on_after_a_render(trainer):
 
 @pytest.mark.parametrize("kwargs, message", [
     (dict(width=0), "width"), (dict(spp=0), "spp"), (dict(chunk=0), "chunk"),
+    (dict(first_round=0), "first_round"), (dict(first_round="fast"), "first_round"),
     (dict(distortion=torch.zeros(4)), "k1 k2 k3 k4"), (dict(fisheye=True), "fisheye"),
 ])
 def test_bad_arguments_are_refused(trainer, kwargs, message):
@@ -144,6 +145,19 @@ def test_bad_arguments_are_refused(trainer, kwargs, message):
     args = dict(width=W, height=H) | kwargs
     with pytest.raises(ValueError, match=message):
         render_view(trainer.model, c2w, intr, args.pop("width"), args.pop("height"), **args)
+
+
+def test_auto_first_round_follows_the_last_views_shaded_samples(trainer):
+    assert [auto_first_round(v) for v in (None, 0.0, 5.2, 10.7, 11.0, 20.1, 100.0)] == [16, 16, 16, 24, 24, 32, 152]
+    c2w, intr = camera(trainer)
+    model = RadianceModel(denser_field(trainer.field, 2.0), trainer.grid, trainer.model.march)
+    first = render_view(model, c2w, intr, W, H)  # 16: no view yet
+    assert model.view_shaded_per_ray == first["n_shaded"] / (W * H) > 12
+    second = render_view(model, c2w, intr, W, H)  # more than 16 after the first
+    assert auto_first_round(model.view_shaded_per_ray) > 16
+    assert first["n_encoded"] != second["n_encoded"]  # the rounds changed, the image did not
+    for key in ("rgb", "opacity", "depth"):
+        torch.testing.assert_close(second[key], first[key], rtol=0, atol=1e-6)
 
 
 def test_chunk_sizer_follows_the_densest_chunk():
