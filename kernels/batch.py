@@ -64,13 +64,35 @@ def fisheye_ray(xd: float, yd: float, k: vec6):
     return wp.vec3(xd * s, yd * s, wp.cos(theta))
 
 
+# The unit world direction through image point (u, v) (pixels) of a camera with intrinsics
+# f = (fx, fy, cx, cy) and camera-to-world [R | t] at c2w[m : m + 12] (row-major):
+#   x = (u − cx) / fx,  y = (v − cy) / fy  (undistorted for LENS_OPENCV),
+#   d = R (x, −y, −1) / |R (x, −y, −1)|  (LENS_FISHEYE: R (x', −y', −z') / |·| for
+#   (x', y', z') = fisheye_ray(x, y)).
+@wp.func
+def camera_ray(u: float, v: float, f: wp.vec4, lens_model: int, k: vec6, c2w: wp.array(dtype=float), m: int):
+    x = (u - f[2]) / f[0]
+    y = (v - f[3]) / f[1]
+    if lens_model == LENS_OPENCV:
+        p = undistort(x, y, k)
+        x = p[0]
+        y = p[1]
+    r = wp.vec3(x, y, 1.0)
+    if lens_model == LENS_FISHEYE:
+        r = fisheye_ray(x, y, k)
+    d = wp.vec3(
+        c2w[m + 0] * r[0] - c2w[m + 1] * r[1] - c2w[m + 2] * r[2],
+        c2w[m + 4] * r[0] - c2w[m + 5] * r[1] - c2w[m + 6] * r[2],
+        c2w[m + 8] * r[0] - c2w[m + 9] * r[1] - c2w[m + 10] * r[2],
+    )
+    return wp.normalize(d)
+
+
 # Ray i: sub-ray s = i mod sub² of pixel q = i div sub²; the pixel's image k and (px, py) are
 # drawn uniformly (Warp's RNG keyed by seed and q, so a pixel's sub-rays agree; its first
 # sub-ray writes the pixel's row q of pixels, target and background), then
-#   x = (px + ox − cx) / fx,  y = (py + oy − cy) / fy  (undistorted for LENS_OPENCV),
-#   (ox, oy) = ((s mod sub) + 1/2, (s div sub) + 1/2) / sub  (the pixel centre for sub = 1),
-#   d = R (x, −y, −1) / |R (x, −y, −1)|,  o = t  for the camera-to-world [R | t] of image k
-#   (LENS_FISHEYE: d = R (x', −y', −z') / |·| for (x', y', z') = fisheye_ray(x, y));
+#   d = camera_ray(px + ox, py + oy) of image k,  o = t,
+#   (ox, oy) = ((s mod sub) + 1/2, (s div sub) + 1/2) / sub  (the pixel centre for sub = 1);
 #   bg ~ U[0, 1)³ with an alpha channel (else white), target = rgb a + bg (1 − a), values / 255.
 @wp.kernel
 def sample_pixels(
@@ -100,30 +122,11 @@ def sample_pixels(
     px = wp.randi(rng, 0, width)
     py = wp.randi(rng, 0, height)
 
-    f = intrinsics[k]
     ox = (float(s % sub) + 0.5) / float(sub)
     oy = (float(s // sub) + 0.5) / float(sub)
-    x = (float(px) + ox - f[2]) / f[0]
-    y = (float(py) + oy - f[3]) / f[1]
-    if lens_model == LENS_OPENCV:
-        u = undistort(x, y, distortion[k])
-        x = u[0]
-        y = u[1]
     m = k * 12  # row-major [3, 4]
-    d = wp.vec3(
-        c2w[m + 0] * x - c2w[m + 1] * y - c2w[m + 2],
-        c2w[m + 4] * x - c2w[m + 5] * y - c2w[m + 6],
-        c2w[m + 8] * x - c2w[m + 9] * y - c2w[m + 10],
-    )
-    if lens_model == LENS_FISHEYE:
-        r = fisheye_ray(x, y, distortion[k])
-        d = wp.vec3(
-            c2w[m + 0] * r[0] - c2w[m + 1] * r[1] - c2w[m + 2] * r[2],
-            c2w[m + 4] * r[0] - c2w[m + 5] * r[1] - c2w[m + 6] * r[2],
-            c2w[m + 8] * r[0] - c2w[m + 9] * r[1] - c2w[m + 10] * r[2],
-        )
     rays_o[i] = wp.vec3(c2w[m + 3], c2w[m + 7], c2w[m + 11])
-    rays_d[i] = wp.normalize(d)
+    rays_d[i] = camera_ray(float(px) + ox, float(py) + oy, intrinsics[k], lens_model, distortion[k], c2w, m)
 
     p = ((k * height + py) * width + px) * channels
     rgb = wp.vec3(float(images[p]), float(images[p + 1]), float(images[p + 2])) / 255.0
@@ -136,3 +139,25 @@ def sample_pixels(
         pixels[q] = wp.vec3i(k, px, py)
         background[q] = bg
         target[q] = rgb
+
+
+# Pixel i = py·width + px of one camera (c2w [3, 4] row-major, intrinsics f, lens k):
+#   o = t,  d = camera_ray(px + 1/2 + dx, py + 1/2 + dy)  (a sub-pixel shift (dx, dy) in pixels).
+@wp.kernel
+def view_rays(
+    first: int,
+    width: int,
+    dx: float,
+    dy: float,
+    lens_model: int,
+    c2w: wp.array(dtype=float),
+    intrinsics: wp.array(dtype=wp.vec4),
+    distortion: wp.array(dtype=vec6),
+    rays_o: wp.array(dtype=wp.vec3),
+    rays_d: wp.array(dtype=wp.vec3),
+):
+    i = first + wp.tid()
+    py = i // width
+    px = i - py * width
+    rays_o[i] = wp.vec3(c2w[3], c2w[7], c2w[11])
+    rays_d[i] = camera_ray(float(px) + 0.5 + dx, float(py) + 0.5 + dy, intrinsics[0], lens_model, distortion[0], c2w, 0)

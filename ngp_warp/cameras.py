@@ -1,4 +1,5 @@
-"""Cameras with OpenCV lenses: pixel -> world ray (torch, any device).
+"""Cameras with OpenCV lenses: pixel -> world ray (torch, any device), and every pixel of one
+view in one Warp launch (:func:`view_rays`, the inference renderer's).
 
 Lenses: the ideal pinhole, OpenCV's radial-tangential model (k1 k2 k3 p1 p2) and OpenCV's
 fisheye (equidistant, k1..k4); distortion vectors are [6] k1, k2, k3, k4, p1, p2. The forward
@@ -13,10 +14,13 @@ from __future__ import annotations
 
 import torch
 
+from ngp_warp import _wp
+from ngp_warp.kernels import batch as K
+
 # one iteration count and one set of lens codes for the torch and Warp twins
 from ngp_warp.kernels.batch import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, UNDISTORT_ITERATIONS
 
-__all__ = ["generate_rays", "undistort", "fisheye_ray", "LENS_PINHOLE", "LENS_OPENCV", "LENS_FISHEYE"]
+__all__ = ["generate_rays", "view_rays", "undistort", "fisheye_ray", "LENS_PINHOLE", "LENS_OPENCV", "LENS_FISHEYE"]
 
 
 def _check(t: torch.Tensor, name: str, shape: tuple, like: torch.Tensor | None = None) -> None:
@@ -149,3 +153,37 @@ def generate_rays(
     d = rot[:, :, 0] * x[:, None] - rot[:, :, 1] * y[:, None] - rot[:, :, 2]
     d = d / d.norm(dim=-1, keepdim=True)
     return c2w[:, :, 3].contiguous(), d
+
+
+def view_rays(c2w: torch.Tensor, intrinsics: torch.Tensor, distortion: torch.Tensor | None, width: int, height: int,
+              device: torch.device | str, fisheye: bool = False, shift: tuple[float, float] = (0.0, 0.0),
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rays of every pixel of one camera, row by row, in one launch: pixel (px, py) is
+    sampled at (px + 1/2 + dx, py + 1/2 + dy) for ``shift`` = (dx, dy), as :func:`generate_rays`
+    samples it at its pixel coordinates (px + dx, py + dy) (float32, same lens models).
+
+    Args:
+        c2w: [3, 4] camera-to-world; intrinsics: [4] fx, fy, cx, cy; distortion: [6] k1 k2 k3
+            k4 p1 p2 or None (pinhole); ``fisheye`` as in :func:`generate_rays` (needs distortion).
+        width, height: image size; device: where the rays go (the camera may be anywhere).
+
+    Returns:
+        rays_o, rays_d: [height·width, 3] float32 on ``device``, rays_d unit.
+    """
+    _check(c2w, "c2w", (3, 4))
+    _check(intrinsics, "intrinsics", (4,))
+    if distortion is not None:
+        _check(distortion, "distortion", (6,))
+    elif fisheye:
+        raise ValueError("fisheye rays need the distortion coefficients (zeros for the plain equidistant lens)")
+    lens = LENS_FISHEYE if fisheye else LENS_PINHOLE if distortion is None else LENS_OPENCV
+    dist = torch.zeros(6) if distortion is None else distortion
+    n = width * height
+    rays_o = torch.empty(n, 3, dtype=torch.float32, device=device)
+    rays_d = torch.empty(n, 3, dtype=torch.float32, device=device)
+    _wp.launch(K.view_rays, n, [width, float(shift[0]), float(shift[1]), lens,
+                                c2w.to(device, torch.float32).reshape(-1).contiguous(),
+                                intrinsics.to(device, torch.float32).reshape(1, 4).contiguous(),
+                                dist.to(device, torch.float32).reshape(1, 6).contiguous(), rays_o, rays_d],
+               _wp.device_of(rays_o))
+    return rays_o, rays_d

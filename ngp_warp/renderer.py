@@ -16,7 +16,8 @@ What makes it fast, next to a training render of the same rays:
   ``early_stop_eps``, :func:`ngp_warp.prune_samples`) take their h on through the colour
   network (:meth:`~ngp_warp.field.NGPField.colour`). The image equals a one-pass render's.
 * the MLPs in the model's precision (bf16 on GPUs, :meth:`RadianceModel.precision`);
-* rays are generated once per image, the outputs are written into buffers allocated once, and
+* rays are generated once per image (one launch, :func:`ngp_warp.cameras.view_rays`), the
+  outputs are written into buffers allocated once, and
   the chunks are as large as memory allows: their size adapts to the samples per ray of the
   chunks already rendered (:class:`ChunkSizer`), so a view takes a few chunks, each with four
   host synchronisations (the march's, the two rounds', the pruning's).
@@ -28,7 +29,7 @@ import math
 
 import torch
 
-from ngp_warp.cameras import generate_rays
+from ngp_warp.cameras import view_rays
 from ngp_warp.composite import composite_packed
 from ngp_warp.gather import gather_rows, scatter_rows
 from ngp_warp.model import RadianceModel
@@ -224,11 +225,6 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
         model.field.eval()
     dev = model.device
     n = width * height
-    pixel = torch.arange(n, device=dev)
-    px, py = (pixel % width).float(), torch.div(pixel, width, rounding_mode="floor").float()
-    cams = c2w.to(dev, torch.float32).expand(n, 3, 4)
-    intr = intrinsics.to(dev, torch.float32).expand(n, 4)
-    dist = None if distortion is None else distortion.to(dev, torch.float32).expand(n, 6)
     bg = torch.full((3,), float(background), device=dev)
     rgb, depth, opacity = torch.zeros(n, 3, device=dev), torch.zeros(n, device=dev), torch.zeros(n, device=dev)
     sizer = None if chunk is not None else ChunkSizer(
@@ -236,7 +232,7 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     shifts = subpixel_offsets(supersample)
     counts = {"n_marched": 0, "n_encoded": 0, "n_shaded": 0}
     for dx, dy in shifts:
-        rays_o, rays_d = generate_rays(cams, intr, dist, px + dx, py + dy, fisheye=fisheye)
+        rays_o, rays_d = view_rays(c2w, intrinsics, distortion, width, height, dev, fisheye, (dx, dy))
         for _ in range(spp):
             lo = 0
             while lo < n:

@@ -11,7 +11,7 @@ from data_fixtures import random_c2w
 
 from ngp_warp import _wp
 from ngp_warp._reference.cameras import distort, fisheye_distort, project
-from ngp_warp.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, fisheye_ray, generate_rays, undistort
+from ngp_warp.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, fisheye_ray, generate_rays, undistort, view_rays
 from ngp_warp.data import Split
 from ngp_warp.kernels import batch as K
 
@@ -164,3 +164,23 @@ def test_kernel_rays_match_the_float64_twin(lens):
     if lens == "pinhole":  # bit for bit what the float32 torch path computes
         _, want32 = split.rays(k, px, py)
         torch.testing.assert_close(rays_d, want32, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+@pytest.mark.parametrize("lens", ["pinhole", "opencv", "fisheye"])
+def test_view_rays_match_the_float64_twin_row_by_row(lens, device):
+    split = _split(lens)
+    c2w, intr = split.c2w[3], split.intrinsics[3]
+    dist = split.distortion[3] if split.has_distortion else None
+    width, height, shift = split.width, split.height, (0.25, -0.125)
+    o, d = view_rays(c2w, intr, dist, width, height, device, fisheye=split.fisheye, shift=shift)
+    assert o.device.type == device and d.shape == (width * height, 3) and d.dtype == torch.float32
+    pixel = torch.arange(width * height)
+    px, py = (pixel % width).double() + shift[0], (pixel // width).double() + shift[1]
+    n = width * height
+    want_o, want_d = generate_rays(c2w.double().expand(n, 3, 4), intr.double().expand(n, 4),
+                                   None if dist is None else dist.double().expand(n, 6), px, py, fisheye=split.fisheye)
+    torch.testing.assert_close(o.cpu().double(), want_o, rtol=0, atol=1e-6)
+    torch.testing.assert_close(d.cpu().double(), want_d, rtol=0, atol=2e-6)
+    with pytest.raises(ValueError, match="fisheye"):
+        view_rays(c2w, intr, None, width, height, device, fisheye=True)
