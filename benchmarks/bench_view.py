@@ -64,11 +64,11 @@ def time_view(trainer: Trainer, width: int, height: int, repeats: int, supersamp
             torch.cuda.synchronize(trainer.device)
         return out
 
-    out = render()  # warm-up: kernels compiled and loaded, memory pools filled
+    render()  # warm-up: kernels compiled and loaded, memory pools filled, the model's last view set
     times = []
-    for _ in range(repeats):
+    for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
-        render()
+        out = render()
         times.append(time.perf_counter() - t0)
     rays = width * height * supersample ** 2
     ms = statistics.median(times) * 1e3
