@@ -7,21 +7,24 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
-# out[i, w] = src[rows[i], w] for the `words` 4-byte words w of a row; item = i·words + w.
+# Item = i·words + w is word w of row i; its word in the full array is rows[i]·words + w.
+@wp.func
+def word_in_rows(item: int, words: int, rows: wp.array(dtype=wp.int64)) -> int:
+    i = item // words
+    return int(rows[i]) * words + (item - i * words)
+
+
+# out[i, w] = src[rows[i], w] for the `words` 4-byte words w of a row.
 @wp.kernel
 def gather_words(first: int, src: wp.array(dtype=wp.int32), rows: wp.array(dtype=wp.int64), words: int,
                  out: wp.array(dtype=wp.int32)):
     item = first + wp.tid()
-    i = item // words
-    w = item - i * words
-    out[item] = src[int(rows[i]) * words + w]
+    out[item] = src[word_in_rows(item, words, rows)]
 
 
-# dst[rows[i], w] = values[i, w] (rows distinct); item = i·words + w.
+# dst[rows[i], w] = values[i, w] (rows distinct).
 @wp.kernel
 def scatter_words(first: int, values: wp.array(dtype=wp.int32), rows: wp.array(dtype=wp.int64), words: int,
                   dst: wp.array(dtype=wp.int32)):
     item = first + wp.tid()
-    i = item // words
-    w = item - i * words
-    dst[int(rows[i]) * words + w] = values[item]
+    dst[word_in_rows(item, words, rows)] = values[item]
