@@ -71,10 +71,10 @@ def _field_with_code(field: NGPField, code: torch.Tensor):
     """field_fn of :func:`ngp_warp.render_rays` that colours every sample with ``code`` ([A]
     float32, requires grad): σ and the geometry features without autograd
     (:meth:`NGPField.geometry`: the field is frozen), the colour head (the one of
-    :meth:`NGPField.forward`) with it, so that gradients reach ``code`` only."""
+    :meth:`NGPField.forward`, differentiable) with it, so that gradients reach ``code`` only."""
     def field_fn(positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         sigma, h = field.geometry(positions)
-        return sigma, field._colour_head(h, directions, [code.expand(h.shape[0], -1)], fused=False)
+        return sigma, field.colour(h, directions, code, differentiable=True)
 
     return field_fn
 

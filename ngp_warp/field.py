@@ -289,16 +289,20 @@ class NGPField(nn.Module):
         h = self._geometry_no_grad(grid_points)
         return self._sigma_no_grad(h, grid_points), h
 
-    @torch.no_grad()
     def colour(self, h: torch.Tensor, directions: torch.Tensor,
-               appearance_code: torch.Tensor | None = None) -> torch.Tensor:
-        """The colour MLP without autograd (inference), as :meth:`forward` computes it.
+               appearance_code: torch.Tensor | None = None, differentiable: bool = False) -> torch.Tensor:
+        """The colour MLP, as :meth:`forward` computes it: without autograd (inference), or
+        ``differentiable`` through the modules, so that gradients reach the colour MLP's
+        weights, ``h`` and ``appearance_code`` (e.g. to fit a code to an image with the field
+        frozen, :func:`ngp_warp.appearance_fit.fit_appearance_code`).
 
         Args:
             h: [N, G] density MLP outputs from :meth:`geometry` (the MLP runs in their dtype).
             directions: [N, 3] float32 unit view directions.
             appearance_code: [A] float32 code for every row (see :meth:`appearance_code`);
                 None: the mean training code.
+            differentiable: record the colour MLP for autograd (slower: the modules, not the
+                fused no-grad path).
 
         Returns:
             rgb [N, 3] float32 in (0, 1).
@@ -309,7 +313,10 @@ class NGPField(nn.Module):
                              f"got {tuple(h.shape)} and {tuple(directions.shape)}")
         code = self.appearance_code(appearance_code)
         codes = [] if code is None else [code.expand(n, -1)]
-        return self._colour_head(h, directions, codes, fused=True)
+        if differentiable:
+            return self._colour_head(h, directions, codes, fused=False)
+        with torch.no_grad():
+            return self._colour_head(h, directions, codes, fused=True)
 
     def appearance_code(self, code: torch.Tensor | None) -> torch.Tensor | None:
         """The [A] float32 code to colour with, on the field's device: ``code`` itself, or the
