@@ -14,7 +14,8 @@ What makes it fast, next to a training render of the same rays:
   never encoded; the others get σ = 0, and as they lie behind the early-termination point
   nothing reads them). Only the samples in front of that point (transmittance ≥
   ``early_stop_eps``, :func:`ngp_warp.prune_samples`) take their h on through the colour
-  network (:meth:`~ngp_warp.field.NGPField.colour`). The image equals a one-pass render's.
+  network (:meth:`~ngp_warp.field.NGPField.colour`). The image is a one-pass render's, up to
+  the MLPs' rounding in batches of another size.
 * the MLPs in the model's precision (bf16 on GPUs, :meth:`RadianceModel.precision`);
 * rays are generated once per image (one launch, :func:`ngp_warp.cameras.view_rays`), the
   outputs are written into buffers allocated once, and
