@@ -207,6 +207,10 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
             The image does not depend on it.
         appearance_code: [A] float32 appearance code for every ray (e.g. one fitted to a test
             view); None: the mean training code. Only for fields with appearance codes.
+        first_round: samples per ray encoded before the rays that are already opaque stop (see
+            the module); None encodes every marched sample at once; ``"auto"``
+            (:func:`auto_first_round`) takes it from the model's last view. Speed only: the
+            image changes by no more than the MLPs' rounding.
 
     Returns:
         dict with ``rgb`` [H, W, 3] float32 in [0, 1], ``depth`` and ``opacity`` [H, W] float32
