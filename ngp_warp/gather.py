@@ -8,6 +8,8 @@ position) with one thread per row or per element, well below the memory's bandwi
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ngp_warp import _wp
@@ -17,10 +19,11 @@ _MAX_WORDS = 2**31 - 1  # Warp indexes with int32
 
 
 def _words(t: torch.Tensor) -> int | None:
-    """4-byte words per row of contiguous ``t`` ([N, ...]), or None when its rows are not whole
-    words or it has too many words for int32 indexing."""
-    row_bytes = t.element_size() * (t[0].numel() if t.dim() > 1 else 1)
-    if not t.is_contiguous() or row_bytes % 4 or t.numel() * t.element_size() // 4 > _MAX_WORDS:
+    """4-byte words per row of ``t`` ([N, ...]), or None when it is not contiguous, not 4-byte
+    aligned, empty, its rows are not whole words, or it has too many words for int32 indexing."""
+    row_bytes = t.element_size() * math.prod(t.shape[1:])
+    if (not t.is_contiguous() or t.numel() == 0 or row_bytes % 4 or t.data_ptr() % 4
+            or t.numel() * t.element_size() // 4 > _MAX_WORDS):
         return None
     return row_bytes // 4
 
@@ -50,11 +53,12 @@ def scatter_rows(dst: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) ->
     """``dst[rows] = values`` in place: dst [N, ...], rows [K] int64, distinct, in [0, N) (not
     checked), values [K, ...] of dst's dtype and row shape."""
     _check("dst", dst, rows)
-    if values.dtype != dst.dtype or tuple(values.shape) != (rows.shape[0], *dst.shape[1:]):
-        raise ValueError(f"values must be {dst.dtype} {[rows.shape[0], *dst.shape[1:]]}, "
-                         f"got {values.dtype} {list(values.shape)}")
+    if (not isinstance(values, torch.Tensor) or values.dtype != dst.dtype or values.device != dst.device
+            or tuple(values.shape) != (rows.shape[0], *dst.shape[1:])):
+        raise ValueError(f"values must be {dst.dtype} {[rows.shape[0], *dst.shape[1:]]} on {dst.device}, got "
+                         f"{getattr(values, 'dtype', type(values).__name__)} {list(getattr(values, 'shape', []))}")
     words = _words(dst)
-    if words is None or not values.is_contiguous() or rows.shape[0] * words > _MAX_WORDS:
+    if words is None or _words(values) != words or rows.shape[0] * words > _MAX_WORDS:
         dst[rows] = values
         return
     _wp.launch(K.scatter_words, rows.shape[0] * words,

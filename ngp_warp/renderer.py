@@ -20,8 +20,8 @@ What makes it fast, next to a training render of the same rays:
 * rays are generated once per image (one launch, :func:`ngp_warp.cameras.view_rays`), the
   outputs are written into buffers allocated once, and
   the chunks are as large as memory allows: their size adapts to the samples per ray of the
-  chunks already rendered (:class:`ChunkSizer`), so a view takes a few chunks, each with four
-  host synchronisations (the march's, the two rounds', the pruning's).
+  chunks already rendered (:class:`ChunkSizer`), so a view takes a few chunks, each with two
+  host synchronisations (the march's, the pruning's), four with the rounds.
 """
 
 from __future__ import annotations
@@ -130,9 +130,11 @@ def auto_first_round(shaded_per_ray: float | None) -> int:
 
 def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
     """σ [S] float32 and h [S, G] of the S marched samples, in one pass, or in two rounds (see
-    the module) when ``first_round`` is set, ``eps`` > 0 and some ray has more samples than
-    that. Rows never encoded have σ = 0 and unset h. Also returns the host int rows encoded."""
+    the module) when ``first_round`` is set, ``eps`` is positive in float32 (as the pruning
+    compares it) and the chunk holds more than ``first_round`` samples per ray on average. Rows
+    never encoded have σ = 0 and unset h. Also returns the host int rows encoded."""
     n_rays, n_samples = samples.ray_offsets.shape[0] - 1, samples.n_samples
+    eps = float(torch.tensor(eps, dtype=torch.float32))
     if first_round is None or eps <= 0 or n_samples <= n_rays * first_round:
         return (*field.geometry(samples.positions), n_samples)
     rays = samples.ray_indices
@@ -220,7 +222,7 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     """
     _check_camera(c2w, intrinsics, distortion, width, height, spp, supersample, fisheye)
     for name, value in (("chunk", chunk), ("first_round", None if first_round == "auto" else first_round)):
-        if value is not None and not (isinstance(value, int) and value >= 1):
+        if value is not None and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
             raise ValueError(f"{name} must be None or a positive integer{', or auto' * (name == 'first_round')}, "
                              f"got {value!r}")
     if first_round == "auto":

@@ -158,3 +158,6 @@ def test_cuda_matches_cpu(kind):
     assert tame.sum() > len(p) // 2 and (~tame).sum() > 100
     assert torch.allclose(back_cpu[tame], back_gpu[tame], rtol=1e-5, atol=1e-6)
     assert torch.allclose(C.contract(back_gpu, kind, BOX), C.contract(back_cpu, kind, BOX), rtol=0, atol=1e-5)
+    # everywhere, within 64 float32 ulps of ‖y‖ carried through 1 / (2 − ‖y‖)
+    allowed = 1e-5 + 64 * 2.0**-23 / (2 - radius).clamp_min(2.0**-20)
+    assert ((back_cpu - back_gpu).norm(dim=-1) <= 1e-6 + allowed * back_cpu.norm(dim=-1)).all()

@@ -114,23 +114,19 @@ def test_geometry_then_colour_equals_forward(contraction, appearance_dim):
             second = field(x, d, torch.full((600,), 2))[1]
         torch.testing.assert_close(field.colour(h, d, field.appearance.weight[2]), second, rtol=1e-5, atol=1e-6)
         assert (second - rgb_want).abs().max() > 1e-3  # image 2's code is not the mean one
-    code = (field.appearance.weight[2].detach().clone() if appearance_dim else None)
-    if code is not None:
-        code.requires_grad_(True)
+    code = field.appearance.weight[2].detach().clone().requires_grad_(True) if appearance_dim else None
     h_leaf = h.detach().clone().requires_grad_(True)
     rgb_grad = field.colour(h_leaf, d, code, differentiable=True)
     assert rgb_grad.requires_grad and not field.colour(h_leaf, d, code).requires_grad
     torch.testing.assert_close(rgb_grad, field.colour(h, d, code), rtol=1e-5, atol=1e-6)
     weights = torch.rand(600, 3)
     rgb_grad.mul(weights).sum().backward()
-    for leaf in [h_leaf] + ([code] if code is not None else []):  # against central differences, one entry
-        step = torch.zeros_like(leaf)
-        step.view(-1)[1] = 1e-2
-        with torch.no_grad():
-            change = (field.colour(h_leaf + step if leaf is h_leaf else h, d, code + step if leaf is code else code)
-                      - field.colour(h_leaf - step if leaf is h_leaf else h, d, code - step if leaf is code else code))
-        numeric = float((change * weights).sum()) / 2e-2
-        assert leaf.grad.view(-1)[1].item() == pytest.approx(numeric, rel=2e-2, abs=1e-4)
+    assert h_leaf.grad.abs().sum() > 0
+    if appearance_dim:  # the code's gradient is the training path's gradient of image 2's code
+        field.zero_grad()
+        field(x, d, torch.full((600,), 2))[1].mul(weights).sum().backward()
+        assert code.grad.abs().sum() > 0
+        torch.testing.assert_close(code.grad, field.appearance.weight.grad[2], rtol=1e-4, atol=1e-6)
 
 
 def test_appearance_code_is_checked():

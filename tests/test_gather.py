@@ -37,17 +37,26 @@ def test_gather_and_scatter_match_the_row_by_row_twins(device, shape, dtype):
     assert torch.equal(dst.cpu(), want) and not torch.equal(dst.cpu(), src.cpu())
 
 
-def test_empty_rows_and_non_contiguous_sources():
+def test_empty_rows_and_sources_the_kernel_cannot_take():
     src = torch.randn(50, 4)
     assert gather_rows(src, torch.zeros(0, dtype=torch.int64)).shape == (0, 4)
+    assert gather_rows(torch.zeros(0, 3), torch.zeros(0, dtype=torch.int64)).shape == (0, 3)
+    rows = torch.tensor([3, 0, 48])
     strided = src[:, ::2]  # not contiguous: torch's indexing
-    rows = torch.tensor([3, 0, 49])
-    assert torch.equal(gather_rows(strided, rows), strided[rows])
+    odd = torch.randn(101, dtype=torch.float32).to(torch.bfloat16)[1:].view(50, 2)  # 2-byte aligned only
+    for t in (strided, odd):
+        assert torch.equal(gather_rows(t, rows), t[rows])
+        dst, want = t.clone() if t is strided else t, t.clone()
+        values = torch.randn(3, *t.shape[1:]).to(t.dtype)
+        scatter_rows(dst, rows, values)
+        want[rows] = values
+        assert torch.equal(dst, want)
 
 
 @pytest.mark.parametrize("bad", [
     {"rows": torch.tensor([1, 2], dtype=torch.int32)}, {"rows": torch.ones(2, 2, dtype=torch.int64)},
     {"src": "h"}, {"values": torch.zeros(2, 4, dtype=torch.float64)}, {"values": torch.zeros(3, 4)},
+    {"values": [[0.0] * 4] * 2},
 ])
 def test_bad_inputs_are_one_line_errors(bad):
     args = {"src": torch.zeros(10, 4), "rows": torch.tensor([1, 2]), "values": torch.zeros(2, 4)}

@@ -138,6 +138,7 @@ def test_training_goes_on_after_a_render(trainer):
 @pytest.mark.parametrize("kwargs, message", [
     (dict(width=0), "width"), (dict(spp=0), "spp"), (dict(chunk=0), "chunk"),
     (dict(first_round=0), "first_round"), (dict(first_round="fast"), "first_round"),
+    (dict(first_round=True), "first_round"),
     (dict(distortion=torch.zeros(4)), "k1 k2 k3 k4"), (dict(fisheye=True), "fisheye"),
 ])
 def test_bad_arguments_are_refused(trainer, kwargs, message):
@@ -145,6 +146,14 @@ def test_bad_arguments_are_refused(trainer, kwargs, message):
     args = dict(width=W, height=H) | kwargs
     with pytest.raises(ValueError, match=message):
         render_view(trainer.model, c2w, intr, args.pop("width"), args.pop("height"), **args)
+
+
+def test_an_eps_that_is_zero_in_float32_encodes_every_sample(trainer):
+    c2w, intr = camera(trainer)  # prune compares float32(eps) = 0: every sample composites
+    model = RadianceModel(denser_field(trainer.field, 5.0), trainer.grid, trainer.model.march, early_stop_eps=1e-46)
+    out = render_view(model, c2w, intr, W, H, background=0.25, first_round=4)
+    assert out["n_encoded"] == out["n_shaded"] == out["n_marched"]
+    assert_same_image(out, plain_render(model, *pixel_rays(c2w, intr), 0.25))
 
 
 def test_auto_first_round_follows_the_last_views_shaded_samples(trainer):
