@@ -1,0 +1,63 @@
+"""How much of a capture's held-out PSNR is the appearance fit: one trained run's test views
+scored on their right halves with codes fitted on the left half in several ways.
+
+    python benchmarks/fit_study.py RUN_DIR [--fit ITERATIONS:LR:SEED ...]
+
+Each ``--fit`` is Adam's iterations, learning rate and pixel seed for
+:func:`ngp_warp.appearance_fit.fit_appearance_code` (default: the evaluation's own, then its
+pixels redrawn, then longer and slower fits). A fit whose PSNR moves with its seed is noisy; one
+that gains with more iterations is not converged. Prints a table: per view and the mean.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ngp_warp.appearance_fit import FIT_ITERATIONS, FIT_LR, fit_appearance_code, right_half
+from ngp_warp.checkpoint import load_trainer
+from ngp_warp.evaluate import composite_on
+from ngp_warp.metrics import psnr
+
+DEFAULT_FITS = [f"{FIT_ITERATIONS}:{FIT_LR}:0", f"{FIT_ITERATIONS}:{FIT_LR}:1", f"{FIT_ITERATIONS}:{FIT_LR}:2",
+                f"{3 * FIT_ITERATIONS}:{FIT_LR}:0", f"{3 * FIT_ITERATIONS}:{FIT_LR / 3}:0"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--fit", nargs="+", default=DEFAULT_FITS, metavar="ITERATIONS:LR:SEED")
+    args = ap.parse_args()
+    fits = [(int(i), float(lr), int(s)) for i, lr, s in (f.split(":") for f in args.fit)]
+    trainer, _ = load_trainer(Path(args.run) / "checkpoint.pt", device=args.device)
+    if trainer.field.appearance is None:
+        ap.error("this run's field has no appearance codes")
+    split, white = trainer.scene.test, torch.ones(3, device=trainer.device)
+    background = 0.0 if trainer.black_background else 1.0
+    rows = []
+    for i, name in enumerate(split.names):
+        camera = dict(c2w=split.c2w[i], intrinsics=split.intrinsics[i], width=split.width, height=split.height,
+                      distortion=split.distortion[i] if split.has_distortion else None, fisheye=split.fisheye)
+        gt = composite_on(split.images[i].to(trainer.device), white)
+        scores = []
+        for iterations, lr, seed in fits:
+            code = fit_appearance_code(trainer, **camera, image=gt, background=background, iterations=iterations,
+                                       lr=lr, seed=seed)
+            out = trainer.render_image(**camera, background=background, appearance_code=code)
+            scores.append(psnr(right_half(out["rgb"]), right_half(gt)))
+        rows.append((name, scores))
+        print(name, " ".join(f"{s:.2f}" for s in scores), flush=True)
+    print("\n| view | " + " | ".join(f"{i} it, lr {lr:g}, seed {s}" for i, lr, s in fits) + " |")
+    print("| --- |" + " ---: |" * len(fits))
+    for name, scores in rows:
+        print(f"| {Path(name).stem} | " + " | ".join(f"{s:.2f}" for s in scores) + " |")
+    means = np.mean([scores for _, scores in rows], axis=0)
+    print("| **mean** | " + " | ".join(f"**{m:.2f}**" for m in means) + " |")
+
+
+if __name__ == "__main__":
+    main()
