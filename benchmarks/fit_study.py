@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ngp_warp.appearance_fit import FIT_ITERATIONS, FIT_LR, fit_appearance_code, right_half
-from ngp_warp.checkpoint import load_trainer
+from ngp_warp.checkpoint import CheckpointError, load_trainer
 from ngp_warp.evaluate import composite_on
 from ngp_warp.metrics import psnr
 
@@ -32,8 +32,14 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--fit", nargs="+", default=DEFAULT_FITS, metavar="ITERATIONS:LR:SEED")
     args = ap.parse_args()
-    fits = [(int(i), float(lr), int(s)) for i, lr, s in (f.split(":") for f in args.fit)]
-    trainer, _ = load_trainer(Path(args.run) / "checkpoint.pt", device=args.device)
+    try:
+        fits = [(int(i), float(lr), int(s)) for i, lr, s in (f.split(":") for f in args.fit)]
+    except ValueError:
+        ap.error(f"--fit takes ITERATIONS:LR:SEED, got {' '.join(args.fit)}")
+    try:
+        trainer, _ = load_trainer(Path(args.run) / "checkpoint.pt", device=args.device)
+    except CheckpointError as e:
+        ap.error(str(e))
     if trainer.field.appearance is None:
         ap.error("this run's field has no appearance codes")
     split, white = trainer.scene.test, torch.ones(3, device=trainer.device)
