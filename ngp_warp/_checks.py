@@ -1,6 +1,15 @@
-"""Range checks shared by the configuration dataclasses."""
+"""Range checks shared by the configuration dataclasses, and the boxes' value check."""
 
 from numbers import Integral, Real
+
+import torch
+
+
+def check_aabb_values(aabb: torch.Tensor) -> None:
+    """ValueError unless the [6] box ``aabb`` (min xyz, max xyz) is finite with max > min on
+    every axis. It reads the values: one host synchronisation for a GPU tensor."""
+    if not bool(torch.isfinite(aabb).all() and (aabb[3:] > aabb[:3]).all()):
+        raise ValueError(f"aabb must be finite with max > min on every axis, got {aabb.tolist()}")
 
 
 def check_numbers(config, counts=(), positive=(), non_negative=(), optional=()) -> None:

@@ -24,6 +24,7 @@ import math
 import torch
 
 from ngp_warp import _wp
+from ngp_warp._checks import check_aabb_values
 from ngp_warp.kernels import contraction as K
 
 __all__ = ["KINDS", "contract", "uncontract", "world_step_length"]
@@ -58,8 +59,8 @@ def _inner_box(aabb, device: torch.device, check_values: bool = True) -> torch.T
         raise ValueError(f"aabb must be a [6] float32 tensor, got {getattr(aabb, 'shape', type(aabb).__name__)}")
     if aabb.device != device:
         raise ValueError(f"aabb is on {aabb.device}, the points on {device}")
-    if check_values and not bool(torch.isfinite(aabb).all() and (aabb[3:] > aabb[:3]).all()):
-        raise ValueError(f"aabb must be finite with max > min on every axis, got {aabb.tolist()}")
+    if check_values:
+        check_aabb_values(aabb)
     return aabb.contiguous()
 
 

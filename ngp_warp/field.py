@@ -30,7 +30,7 @@ from torch import nn
 import warp as wp
 
 from ngp_warp import _wp
-from ngp_warp._checks import check_numbers
+from ngp_warp._checks import check_aabb_values, check_numbers
 from ngp_warp.contraction import KINDS, contract
 from ngp_warp.hashgrid import HashGridEncoding
 from ngp_warp.kernels import field as K
@@ -178,8 +178,7 @@ class NGPField(nn.Module):
         self.config = cfg
         self.contraction = contraction
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(6)
-        if not bool(torch.isfinite(aabb).all() and (aabb[3:] > aabb[:3]).all()):  # once, here: not per call
-            raise ValueError(f"aabb must be finite with max > min on every axis, got {aabb.tolist()}")
+        check_aabb_values(aabb)  # once, here: not per call
         self.register_buffer("aabb", aabb.clone())
         # the hash grid's box: the field's box, or the contracted ball's [-2, 2]^3
         grid_box = aabb.clone() if contraction is None else torch.tensor([-2.0] * 3 + [2.0] * 3)

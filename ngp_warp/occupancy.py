@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from ngp_warp import _wp
+from ngp_warp._checks import check_aabb_values
 from ngp_warp.contraction import KINDS, uncontract
 from ngp_warp.kernels import occupancy as K
 
@@ -52,9 +53,7 @@ def _parse_aabb(aabb) -> list[float]:
     values = torch.as_tensor(aabb, dtype=torch.float64).detach().cpu().reshape(-1)
     if values.numel() != 6:
         raise ValueError(f"aabb must hold 6 values (min_xyz, max_xyz), got shape {tuple(torch.as_tensor(aabb).shape)}")
-    lo, hi = values[:3], values[3:]
-    if not (torch.isfinite(values).all() and (hi > lo).all()):
-        raise ValueError(f"aabb must be finite with max > min on every axis, got {values.tolist()}")
+    check_aabb_values(values)
     return values.tolist()
 
 

@@ -161,3 +161,21 @@ def test_cuda_matches_cpu(kind):
     # everywhere, within 64 float32 ulps of ‖y‖ carried through 1 / (2 − ‖y‖)
     allowed = 1e-5 + 64 * 2.0**-23 / (2 - radius).clamp_min(2.0**-20)
     assert ((back_cpu - back_gpu).norm(dim=-1) <= 1e-6 + allowed * back_cpu.norm(dim=-1)).all()
+
+
+@pytest.mark.parametrize("box", [[0.0, 0.0, 0.0, 1.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0, float("nan"), 1.0],
+                                 [0.0, 0.0, 0.0, 1.0, 1.0, 0.0]])
+def test_boxes_without_volume_are_refused_everywhere(box):
+    """contract/uncontract, the field and the occupancy grid share one check of their box's values."""
+    from ngp_warp.field import FieldConfig, NGPField
+    from ngp_warp.occupancy import OccupancyGrid
+
+    aabb = torch.tensor(box)
+    x = torch.rand(4, 3)
+    makers = [lambda: C.contract(x, "l2", aabb), lambda: C.uncontract(x, "l2", aabb),
+              lambda: NGPField(aabb, FieldConfig(log2_hashmap_size=12, finest_resolution=32.0)),
+              lambda: OccupancyGrid(aabb, resolution=8)]
+    for make in makers:
+        with pytest.raises(ValueError, match="aabb must be finite with max > min on every axis"):
+            make()
+    C.contract(x, "l2", aabb, check_box=False)  # callers that checked their box once skip it
