@@ -33,6 +33,14 @@ def _check(t: torch.Tensor, name: str, shape: tuple, like: torch.Tensor | None =
         raise ValueError(f"{name} is on {t.device} but c2w is on {like.device}")
 
 
+def _check_lens(distortion: torch.Tensor | None, shape: tuple, fisheye: bool, like: torch.Tensor | None = None) -> None:
+    """``distortion`` of ``shape`` (as :func:`_check`), or None, which a fisheye lens refuses."""
+    if distortion is not None:
+        _check(distortion, "distortion", shape, like)
+    elif fisheye:
+        raise ValueError("fisheye rays need the distortion coefficients (zeros for the plain equidistant lens)")
+
+
 def undistort(xd: torch.Tensor, yd: torch.Tensor, distortion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Invert OpenCV's radial-tangential distortion by Newton's method from (xd, yd), as
     instant-ngp does (its ``iterative_camera_undistortion``), with the analytic 2x2 Jacobian and
@@ -135,10 +143,7 @@ def generate_rays(
     _check(intrinsics, "intrinsics", (b, 4), c2w)
     _check(px, "px", (b,), c2w)
     _check(py, "py", (b,), c2w)
-    if distortion is not None:
-        _check(distortion, "distortion", (b, 6), c2w)
-    elif fisheye:
-        raise ValueError("fisheye rays need the distortion coefficients (zeros for the plain equidistant lens)")
+    _check_lens(distortion, (b, 6), fisheye, c2w)
     dtype = c2w.dtype
     intr = intrinsics.to(dtype)
     x = (px.to(dtype) + 0.5 - intr[:, 2]) / intr[:, 0]
@@ -172,10 +177,7 @@ def view_rays(c2w: torch.Tensor, intrinsics: torch.Tensor, distortion: torch.Ten
     """
     _check(c2w, "c2w", (3, 4))
     _check(intrinsics, "intrinsics", (4,))
-    if distortion is not None:
-        _check(distortion, "distortion", (6,))
-    elif fisheye:
-        raise ValueError("fisheye rays need the distortion coefficients (zeros for the plain equidistant lens)")
+    _check_lens(distortion, (6,), fisheye)
     lens = LENS_FISHEYE if fisheye else LENS_PINHOLE if distortion is None else LENS_OPENCV
     dist = torch.zeros(6) if distortion is None else distortion
     n = width * height
