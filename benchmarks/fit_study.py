@@ -46,8 +46,7 @@ def main() -> None:
     background = 0.0 if trainer.black_background else 1.0
     rows = []
     for i, name in enumerate(split.names):
-        camera = dict(c2w=split.c2w[i], intrinsics=split.intrinsics[i], width=split.width, height=split.height,
-                      distortion=split.distortion[i] if split.has_distortion else None, fisheye=split.fisheye)
+        camera = split.camera(i)
         gt = composite_on(split.images[i].to(trainer.device), white)
         scores = []
         for iterations, lr, seed in fits:

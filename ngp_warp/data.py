@@ -91,6 +91,13 @@ class Split:
         """The ray kernel's lens code: LENS_PINHOLE, LENS_OPENCV or LENS_FISHEYE."""
         return LENS_FISHEYE if self.fisheye else LENS_OPENCV if self.has_distortion else LENS_PINHOLE
 
+    def camera(self, i: int) -> dict:
+        """View ``i``'s camera as the renderer's keywords (``Trainer.render_image``,
+        ``fit_appearance_code``): c2w [3, 4], intrinsics [4] float32, width, height, distortion
+        [6] float32 or None (no distortion), fisheye."""
+        return dict(c2w=self.c2w[i], intrinsics=self.intrinsics[i], width=self.width, height=self.height,
+                    distortion=self.distortion[i] if self.has_distortion else None, fisheye=self.fisheye)
+
     def to(self, device) -> "Split":
         return Split(self.images.to(device), self.c2w.to(device), self.intrinsics.to(device),
                      self.distortion.to(device), list(self.names), self.width, self.height, self.fisheye)

@@ -59,8 +59,7 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     background = 0.0 if trainer.black_background else 1.0
     fit = fit_appearance and trainer.field.appearance is not None
     for i in range(0, len(split.names), every):
-        camera = dict(c2w=split.c2w[i], intrinsics=split.intrinsics[i], width=split.width, height=split.height,
-                      distortion=split.distortion[i] if split.has_distortion else None, fisheye=split.fisheye)
+        camera = split.camera(i)
         gt = composite_on(split.images[i].to(trainer.device), white)
         code = fit_appearance_code(trainer, **camera, image=gt, background=background) if fit else None
         out = trainer.render_image(**camera, background=background, spp=spp, appearance_code=code)

@@ -296,9 +296,7 @@ def training_points(trainer, max_points: int, world_from_scene=None, seed: int =
     split = trainer.scene.train.to(trainer.device)
     points, colors = [], []
     for i in range(len(split)):
-        out = trainer.render_image(split.c2w[i], split.intrinsics[i], split.width, split.height,
-                                   distortion=split.distortion[i] if split.has_distortion else None,
-                                   fisheye=split.fisheye)
+        out = trainer.render_image(**split.camera(i))
         rays_o, rays_d = image_rays(split, i)
         p, c = point_cloud(rays_o, rays_d, out["depth"].reshape(-1), out["opacity"].reshape(-1),
                            out["rgb"].reshape(-1, 3), world_from_scene=world_from_scene)

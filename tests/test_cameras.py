@@ -184,3 +184,15 @@ def test_view_rays_match_the_float64_twin_row_by_row(lens, device):
     torch.testing.assert_close(d.cpu().double(), want_d, rtol=0, atol=2e-6)
     with pytest.raises(ValueError, match="fisheye"):
         view_rays(c2w, intr, None, width, height, device, fisheye=True)
+
+
+@pytest.mark.parametrize("lens", ["pinhole", "opencv", "fisheye"])
+def test_split_camera_gives_a_views_render_keywords(lens):
+    split = _split(lens)
+    cam = split.camera(3)
+    assert (cam["width"], cam["height"], cam["fisheye"]) == (split.width, split.height, lens == "fisheye")
+    assert torch.equal(cam["c2w"], split.c2w[3]) and torch.equal(cam["intrinsics"], split.intrinsics[3])
+    if lens == "pinhole":
+        assert cam["distortion"] is None
+    else:
+        assert torch.equal(cam["distortion"], split.distortion[3])
