@@ -1,11 +1,13 @@
 """How much of a capture's held-out PSNR is the appearance fit: one trained run's test views
 scored on their right halves with codes fitted on the left half in several ways.
 
-    python benchmarks/fit_study.py RUN_DIR [--fit ITERATIONS:LR:SEED ...]
+    python benchmarks/fit_study.py RUN_DIR [--fit ITERATIONS:LR:SEED[:pose] ...]
 
 Each ``--fit`` is Adam's iterations, learning rate and pixel seed for
 :func:`ngp_warp.appearance_fit.fit_appearance_code` (default: the evaluation's own, then its
-pixels redrawn, then longer and slower fits). A fit whose PSNR moves with its seed is noisy; one
+pixels redrawn, then longer and slower fits); ``:pose`` fits the view's pose as well
+(:func:`ngp_warp.appearance_fit.fit_appearance_and_pose`: how much of the error is the view's
+registration). A fit whose PSNR moves with its seed is noisy; one
 that gains with more iterations is not converged. Prints a table: per view and the mean.
 """
 
@@ -17,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ngp_warp.appearance_fit import FIT_ITERATIONS, FIT_LR, fit_appearance_code, right_half
+from ngp_warp.appearance_fit import FIT_ITERATIONS, FIT_LR, fit_appearance_and_pose, fit_appearance_code, right_half
 from ngp_warp.checkpoint import CheckpointError, load_trainer
 from ngp_warp.evaluate import composite_on
 from ngp_warp.metrics import psnr
@@ -26,16 +28,23 @@ DEFAULT_FITS = [f"{FIT_ITERATIONS}:{FIT_LR}:0", f"{FIT_ITERATIONS}:{FIT_LR}:1", 
                 f"{3 * FIT_ITERATIONS}:{FIT_LR}:0", f"{3 * FIT_ITERATIONS}:{FIT_LR / 3}:0"]
 
 
+def _parse_fit(spec: str) -> tuple[int, float, int, bool]:
+    parts = spec.split(":")
+    if len(parts) not in (3, 4) or (len(parts) == 4 and parts[3] != "pose"):
+        raise ValueError(spec)
+    return int(parts[0]), float(parts[1]), int(parts[2]), len(parts) == 4
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--fit", nargs="+", default=DEFAULT_FITS, metavar="ITERATIONS:LR:SEED")
+    ap.add_argument("--fit", nargs="+", default=DEFAULT_FITS, metavar="ITERATIONS:LR:SEED[:pose]")
     args = ap.parse_args()
     try:
-        fits = [(int(i), float(lr), int(s)) for i, lr, s in (f.split(":") for f in args.fit)]
+        fits = [_parse_fit(f) for f in args.fit]
     except ValueError:
-        ap.error(f"--fit takes ITERATIONS:LR:SEED, got {' '.join(args.fit)}")
+        ap.error(f"--fit takes ITERATIONS:LR:SEED[:pose], got {' '.join(args.fit)}")
     try:
         trainer, _ = load_trainer(Path(args.run) / "checkpoint.pt", device=args.device)
     except CheckpointError as e:
@@ -49,14 +58,18 @@ def main() -> None:
         camera = split.camera(i)
         gt = composite_on(split.images[i].to(trainer.device), white)
         scores = []
-        for iterations, lr, seed in fits:
-            code = fit_appearance_code(trainer, **camera, image=gt, background=background, iterations=iterations,
-                                       lr=lr, seed=seed)
-            out = trainer.render_image(**camera, background=background, appearance_code=code)
+        for iterations, lr, seed, pose in fits:
+            fit = dict(image=gt, background=background, iterations=iterations, lr=lr, seed=seed)
+            if pose:
+                code, c2w = fit_appearance_and_pose(trainer, **camera, **fit)
+            else:
+                code, c2w = fit_appearance_code(trainer, **camera, **fit), camera["c2w"]
+            out = trainer.render_image(**{**camera, "c2w": c2w}, background=background, appearance_code=code)
             scores.append(psnr(right_half(out["rgb"]), right_half(gt)))
         rows.append((name, scores))
         print(name, " ".join(f"{s:.2f}" for s in scores), flush=True)
-    print("\n| view | " + " | ".join(f"{i} it, lr {lr:g}, seed {s}" for i, lr, s in fits) + " |")
+    print("\n| view | " + " | ".join(f"{i} it, lr {lr:g}, seed {s}{', pose' if p else ''}" for i, lr, s, p in fits)
+          + " |")
     print("| --- |" + " ---: |" * len(fits))
     for name, scores in rows:
         print(f"| {Path(name).stem} | " + " | ".join(f"{s:.2f}" for s in scores) + " |")

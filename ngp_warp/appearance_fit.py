@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import torch
 
+from ngp_warp.camera_refinement import CameraRefinement
 from ngp_warp.cameras import generate_rays
 from ngp_warp.field import NGPField
 from ngp_warp.trainer import Trainer
@@ -27,6 +28,8 @@ from ngp_warp.trainer import Trainer
 FIT_ITERATIONS = 100
 FIT_LR = 1e-2
 FIT_RAYS_PER_ITERATION = {"cuda": 4096, "cpu": 256}  # by device type
+POSE_LR = 1e-3            # a view's pose correction: Adam's first learning rate ...
+POSE_LR_FINAL = 1e-5      # ... decayed exponentially to this over the fit
 
 
 def right_half(image: torch.Tensor) -> torch.Tensor:
@@ -79,6 +82,34 @@ def _field_with_code(field: NGPField, code: torch.Tensor):
     return field_fn
 
 
+def _field_with_code_and_positions(field: NGPField, code: torch.Tensor):
+    """As :func:`_field_with_code`, with σ and the geometry features differentiable in the
+    positions (:meth:`NGPField.forward`'s path), so that gradients reach a pose correction."""
+    def field_fn(positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = field._geometry(positions)
+        return field._sigma(h, positions), field.colour(h, directions, code, differentiable=True)
+
+    return field_fn
+
+
+def fit_appearance_and_pose(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
+                            image: torch.Tensor, distortion: torch.Tensor | None = None, fisheye: bool = False,
+                            background: float = 1.0, iterations: int = FIT_ITERATIONS,
+                            rays_per_iteration: int | None = None, lr: float = FIT_LR,
+                            seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`fit_appearance_code` that also fits the view's pose: a rotation about its camera
+    centre and a translation (:class:`~ngp_warp.camera_refinement.CameraRefinement`), Adam from
+    :data:`POSE_LR` decayed to :data:`POSE_LR_FINAL`, on the same left-half pixels. Returns the
+    code [A] and the corrected c2w [3, 4] float32 (detached). For bounded fields only (a
+    contracted field gives its positions no gradient): ValueError otherwise."""
+    if trainer.field.contraction is not None:
+        raise ValueError("fitting a view's pose needs a bounded field (no contraction)")
+    pose = CameraRefinement(1, trainer.device)
+    code = _fit(trainer, c2w, intrinsics, width, height, image, distortion, fisheye, background, iterations,
+                rays_per_iteration, lr, seed, pose)
+    return code, pose.refined_c2w(c2w[None])[0]
+
+
 def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                         image: torch.Tensor, distortion: torch.Tensor | None = None, fisheye: bool = False,
                         background: float = 1.0, iterations: int = FIT_ITERATIONS,
@@ -124,6 +155,14 @@ def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.T
     Raises:
         ValueError: one line, for a field without appearance codes or inputs of the wrong shape.
     """
+    return _fit(trainer, c2w, intrinsics, width, height, image, distortion, fisheye, background, iterations,
+                rays_per_iteration, lr, seed, None)
+
+
+def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, distortion, fisheye: bool,
+         background: float, iterations: int, rays_per_iteration: int | None, lr: float, seed: int,
+         pose: CameraRefinement | None) -> torch.Tensor:
+    """The fit of :func:`fit_appearance_code`, and of ``pose`` (in place) when given."""
     dev, field = trainer.device, trainer.field
     if rays_per_iteration is None:
         rays_per_iteration = FIT_RAYS_PER_ITERATION.get(dev.type, FIT_RAYS_PER_ITERATION["cuda"])
@@ -135,17 +174,25 @@ def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.T
     with trainer.weights.averaged_in_field():
         code = field.appearance.weight.detach().mean(0).clone().requires_grad_(True)
         adam = torch.optim.Adam([code], lr=lr)
-        field_fn = _field_with_code(field, code)
-        for px, py in zip(px_all, py_all):
+        field_fn = _field_with_code(field, code) if pose is None else _field_with_code_and_positions(field, code)
+        pose_adam = None if pose is None else torch.optim.Adam([pose.omega, pose.tau], lr=POSE_LR, eps=1e-15)
+        for it, (px, py) in enumerate(zip(px_all, py_all)):
             n = px.shape[0]
             rays_o, rays_d = generate_rays(c2w_n.expand(n, 3, 4), intr_n.expand(n, 4),
                                            None if dist_n is None else dist_n.expand(n, 6), px, py, fisheye=fisheye)
+            if pose is not None:
+                rays_o, rays_d = pose.rays(torch.zeros(n, dtype=torch.long, device=dev), rays_o, rays_d)
             with trainer.model.precision():
                 out = trainer.model.render(rays_o, rays_d, field_fn, background=background,
                                            sigma_fn=field.density)
             if out["n_samples"] == 0:  # nothing along these rays: the code changes nothing
                 continue
             loss = (out["rgb"] - target_image[py, px]).square().mean()
-            (code.grad,) = torch.autograd.grad(loss, [code])
+            if pose is None:
+                (code.grad,) = torch.autograd.grad(loss, [code])
+            else:
+                code.grad, pose.omega.grad, pose.tau.grad = torch.autograd.grad(loss, [code, pose.omega, pose.tau])
+                pose_adam.param_groups[0]["lr"] = POSE_LR * (POSE_LR_FINAL / POSE_LR) ** (it / max(iterations - 1, 1))
+                pose_adam.step()
             adam.step()
     return code.detach()

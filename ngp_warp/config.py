@@ -51,6 +51,8 @@ class TrainConfig:
                                         # a sub-pixel grid (as the images were area-downsampled), and
                                         # renders average the same grid; None: 2 on CUDA, 1 on the CPU
     distortion_weight: float = 0.0      # weight of the mean distortion loss per ray (t in world units)
+    camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
+    camera_lr: float = 1e-3             # its Adam learning rate (instant-ngp's extrinsic_learning_rate)
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def check(self) -> None:
@@ -64,13 +66,15 @@ class TrainConfig:
                 raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {value!r}")
         check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
                                      "steps_per_diagonal"),
-                       positive=("seconds", "lr", "occupancy_threshold"),
+                       positive=("seconds", "lr", "occupancy_threshold", "camera_lr"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"),
                        optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold"))
         if not 0.0 <= self.occupancy_decay < 1.0:
             raise ValueError(f"occupancy_decay must be in [0, 1), got {self.occupancy_decay!r}")
         if not 0.0 <= self.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
+        if type(self.camera_refinement) is not bool:
+            raise ValueError(f"camera_refinement must be true or false, got {self.camera_refinement!r}")
         if type(self.seed) is not int or not 0 <= self.seed < 2**63:
             raise ValueError(f"seed must be an integer in [0, 2^63), got {self.seed!r}")
         self.field.check()

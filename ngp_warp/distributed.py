@@ -224,7 +224,10 @@ def make_data_parallel(trainer: Trainer) -> GradientReducer:
     """Turn ``trainer`` into this rank's part of data-parallel training (a process group must be
     initialized): rank 0's state on every rank, this rank's ray stream, the gradient reduction
     after each backward (waited before each optimizer update), the grid updates' max over the
-    ranks and rank 0's clock. Returns the reducer."""
+    ranks and rank 0's clock. Returns the reducer. ValueError (one line) for a trainer with
+    camera refinement, whose pose corrections the reduction does not share."""
+    if trainer.cameras is not None:
+        raise ValueError("camera_refinement is not supported with data-parallel training (--gpus > 1)")
     rank, _ = rank_and_size()
     broadcast_state(trainer)
     reducer = GradientReducer(trainer.field)

@@ -23,6 +23,7 @@ model::
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import torch
@@ -91,6 +92,18 @@ def _pruned(samples: RaySamples, sigma_fn, grid: OccupancyGrid, early_stop_eps: 
     return samples, extra
 
 
+def _attached(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor) -> RaySamples:
+    """``samples`` whose positions carry the gradient to the rays that require it: the march's
+    positions plus :math:`(o + t d) - \\mathrm{sg}(o + t d)` of each sample's ray at its midpoint
+    :math:`t` (zero in value; padding rows, of ray N, get none), so that
+    :math:`\\partial x / \\partial o = I` and :math:`\\partial x / \\partial d = t I` with the
+    distances held fixed. Directions stay detached."""
+    rays = torch.nn.functional.pad(torch.stack([rays_o, rays_d]), (0, 0, 0, 1))[:, samples.ray_indices]
+    t_mid = (0.5 * (samples.t_starts + samples.t_ends))[:, None]
+    moved = rays[0] + t_mid * rays[1]
+    return dataclasses.replace(samples, positions=samples.positions + (moved - moved.detach()))
+
+
 def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_images: torch.Tensor | None):
     """(rgb [N, 3], opacity [N], depth [N], weights [S]) of the samples through ``field_fn``,
     which also gets each sample's image (padding rows, of ray N: image 0) given ``ray_images``."""
@@ -153,7 +166,10 @@ def render_rays(
     with :math:`w_i` as in :func:`ngp_warp.composite`.
 
     Args:
-        rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 unit directions.
+        rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 unit directions. Rays that
+            require grad get it through the sample positions, the march's distances held fixed
+            (for camera refinement, :mod:`ngp_warp.camera_refinement`); not through the
+            directions given to ``field_fn``.
         grid: :class:`ngp_warp.OccupancyGrid` on the rays' device.
         field_fn: ``(positions [S, 3] float32, directions [S, 3] float32) → (sigmas [S] or
             [S, 1] ≥ 0, rgbs [S, 3])``; not called when no ray has a sample.
@@ -198,6 +214,8 @@ def render_rays(
     extra = {}
     if sigma_fn is not None:
         samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity)
+    if (rays_o.requires_grad or rays_d.requires_grad) and torch.is_grad_enabled():
+        samples = _attached(samples, rays_o, rays_d)
     rgb, opacity, depth, weights = _shade(samples, field_fn, early_stop_eps, ray_images)
     if bg is not None:
         rgb = rgb + bg * (1.0 - opacity)[:, None]

@@ -59,7 +59,8 @@ class TrainingField:
                 # Capture a wrapper: make_graphed_callables replaces the captured module's
                 # forward, and the field itself must stay callable at any size.
                 self.graphed_forward = torch.cuda.make_graphed_callables(
-                    _FieldForward(self.field), tuple(t.detach().clone() for t in inputs))
+                    _FieldForward(self.field), tuple(t.detach().clone().requires_grad_(t.requires_grad)
+                                                     for t in inputs))
             return self.graphed_forward(*inputs)
         return self.field(*inputs)
 

@@ -17,6 +17,7 @@ import torch
 from tqdm import tqdm
 
 from ngp_warp.batch import sample_pixels
+from ngp_warp.camera_refinement import CameraRefinement
 from ngp_warp.config import TrainConfig, default_device, default_target_samples, resolve_defaults
 from ngp_warp.data import Scene, Split
 from ngp_warp.distortion import distortion_loss_packed
@@ -63,6 +64,7 @@ class Trainer:
         self.target_samples = default_target_samples(cfg, self.device.type)
         self.rays = RayCount(cfg.initial_rays, cfg.max_rays, self.target_samples, self.device)
         self.weights = FieldOptimizer(self.field, cfg.lr, cfg.weight_decay, cfg.weight_average, cfg.lazy_table_adam)
+        self.cameras, self.camera_adam = self._camera_refinement(cfg)
         graphs = cfg.cuda_graph and cfg.prune and self.device.type == "cuda"
         self.training_field = TrainingField(self.field, self.target_samples, graphs)
         self.step_count = 0
@@ -81,6 +83,17 @@ class Trainer:
         self.grid.mark_invisible_cells(
             self.train_split.c2w, self.train_split.intrinsics, self.train_split.width, self.train_split.height
         )
+
+    def _camera_refinement(self, cfg: TrainConfig) -> tuple[CameraRefinement | None, torch.optim.Adam | None]:
+        """The training images' pose corrections and their optimizer, with ``camera_refinement``
+        (bounded fields only: positions reach a contracted field without gradient)."""
+        if not cfg.camera_refinement:
+            return None, None
+        if cfg.contraction is not None:
+            raise ValueError("camera_refinement needs a bounded scene (contraction=none); "
+                             f"this one is contracted ({cfg.contraction})")
+        cameras = CameraRefinement(len(self.train_split.names), self.device)
+        return cameras, cameras.optimizer(cfg.camera_lr)
 
     @property
     def field(self) -> NGPField:
@@ -102,14 +115,19 @@ class Trainer:
         supersample² rays each, drawn in one launch from a seed that mixes the config's seed
         with the step count (and :attr:`ray_stream`). The background is black where the field
         learns it (:attr:`RadianceModel.learns_background`, opaque images). With appearance
-        codes, each ray's training image goes to :attr:`batch_images` (for :meth:`_render_batch`)."""
+        codes, each ray's training image goes to :attr:`batch_images` (for :meth:`_render_batch`).
+        With camera refinement the rays are corrected by their image's pose correction
+        (:attr:`cameras`), differentiably."""
         seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B
                 + self.ray_stream * 0xC2B2AE35) & 0x7FFFFFFF
         sub = self.config.supersample
         b = sample_pixels(self.train_split, max(1, n // (sub * sub)), seed, sub)
-        if self.field.appearance is not None:
-            self.batch_images = b.pixels[:, 0].long().repeat_interleave(sub * sub)
-        return b.rays_o, b.rays_d, b.target, b.background.zero_() if self.black_background else b.background
+        images = None
+        if self.field.appearance is not None or self.cameras is not None:
+            images = b.pixels[:, 0].long().repeat_interleave(sub * sub)
+        self.batch_images = images if self.field.appearance is not None else None
+        rays_o, rays_d = (b.rays_o, b.rays_d) if self.cameras is None else self.cameras.rays(images, b.rays_o, b.rays_d)
+        return rays_o, rays_d, b.target, b.background.zero_() if self.black_background else b.background
 
     def _density_for_grid(self, x: torch.Tensor) -> torch.Tensor:
         # The grid stores optical thickness of one step, as instant-ngp and nerfacc do. Its
@@ -156,8 +174,12 @@ class Trainer:
                                     cfg.distortion_weight, huber_delta=0.1 if cfg.loss == "huber" else None,
                                     rays_per_pixel=cfg.supersample ** 2)
             self.weights.zero_grad()
+            if self.camera_adam is not None:
+                self.camera_adam.zero_grad(set_to_none=False)
             if out["n_samples"] > 0:
                 phases.backward(loss)
+                if self.camera_adam is not None:
+                    self.camera_adam.step()
             if self.gradient_reduction is not None:  # every rank takes part, with samples or not
                 self.gradient_reduction()
             if out["n_samples"] > 0 or self.gradient_reduction is not None:
@@ -248,7 +270,9 @@ class Trainer:
         constructor's. Applies the last step's update first."""
         self.flush()
         weights = self.weights.state_dict()
-        return {"field": self.field.state_dict(), "grid": self.grid.state_dict(), **weights,
+        cameras = {} if self.cameras is None else {"cameras": self.cameras.state_dict(),
+                                                   "camera_adam": self.camera_adam.state_dict()}
+        return {"field": self.field.state_dict(), "grid": self.grid.state_dict(), **weights, **cameras,
                 **self.rays.state_dict(), "step": self.step_count, "train_seconds": self.train_seconds}
 
     def load_state_dict(self, state: dict) -> None:
@@ -258,6 +282,9 @@ class Trainer:
         self.grid.load_state_dict(state["grid"])
         self.weights.load_state_dict(state)
         self.rays.load_state_dict(state)
+        if self.cameras is not None and "cameras" in state:
+            self.cameras.load_state_dict(state["cameras"])
+            self.camera_adam.load_state_dict(state["camera_adam"])
         self.step_count = state["step"]
         self.train_seconds = state["train_seconds"]
 

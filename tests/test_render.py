@@ -81,6 +81,44 @@ def test_gradients_reach_the_field_like_a_float64_pipeline():
     assert grads[0].abs() > 1e-3
 
 
+def blob_field(positions, directions):
+    """A smooth field (σ and colour vary with position everywhere), so that positions get gradients."""
+    sigma = 6.0 * torch.exp(-((positions - CENTER.to(positions.device)) ** 2).sum(-1) / 0.3)
+    return sigma, torch.sigmoid(positions * 2 + directions)
+
+
+@pytest.mark.parametrize("pruned", [False, True])
+def test_gradients_reach_rays_that_require_them_like_a_float64_pipeline(pruned):
+    grid = sphere_grid(16)
+    rays_o, rays_d = camera_rays(64)
+    o, d = rays_o.clone().requires_grad_(True), rays_d.clone().requires_grad_(True)
+    march = MarchOptions(step_size=0.01)
+    prune = dict(sigma_fn=lambda x: blob_field(x, x)[0], sample_capacity=20000) if pruned else {}
+    out = render_rays(o, d, grid, blob_field, march, background=0.5, return_samples=True, **prune)
+    assert out["n_samples"] > 1000
+    (out["rgb"] * torch.tensor([1.0, -0.5, 0.3])).sum().backward()
+
+    # float64: the same samples (distances fixed), positions o + t d, directions detached
+    n = out["ray_offsets"][-1]  # padding rows past it
+    ri, t = out["ray_indices"][:n], (0.5 * (out["t_starts"] + out["t_ends"]))[:n].double()
+    o64, d64 = rays_o.double().requires_grad_(True), rays_d.double().requires_grad_(True)
+    sigmas, rgbs = blob_field(o64[ri] + t[:, None] * d64[ri], rays_d.double()[ri])
+    rgb, opacity, _, _ = composite_ref.composite(sigmas, rgbs, out["t_starts"][:n], out["t_ends"][:n], ri, 64, 1e-4)
+    ((rgb + 0.5 * (1 - opacity[:, None])) * torch.tensor([1.0, -0.5, 0.3], dtype=torch.float64)).sum().backward()
+    torch.testing.assert_close(o.grad, o64.grad.float(), rtol=2e-3, atol=2e-5)
+    torch.testing.assert_close(d.grad, d64.grad.float(), rtol=2e-3, atol=2e-5)
+    assert o.grad.abs().max() > 1e-2 and d.grad.abs().max() > 1e-2
+
+
+def test_rays_without_grad_leave_the_positions_alone():
+    grid = sphere_grid(16)
+    rays_o, rays_d = camera_rays(32)
+    out = render_rays(rays_o, rays_d, grid, blob_field, MarchOptions(step_size=0.01), return_samples=True)
+    s = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.01))
+    torch.testing.assert_close(out["t_starts"], s.t_starts)
+    assert not out["rgb"].requires_grad
+
+
 def test_background_and_returned_samples():
     grid = sphere_grid(16)
     rays_o, rays_d = camera_rays(32)
