@@ -26,7 +26,8 @@ L2_PULL = 1e-4  # instant-ngp's extrinsic_l2_reg
 
 def rotation_matrices(omega: torch.Tensor) -> torch.Tensor:
     """Rodrigues' rotation matrices (module docstring): omega [N, 3] axis-angle (radians) →
-    [N, 3, 3], same dtype, differentiable (at zero as well: θ is taken as √(|ω|² + 1e-24))."""
+    [N, 3, 3], same dtype (under autocast too), differentiable (at zero as well: θ is taken as
+    √(|ω|² + 1e-24))."""
     if omega.ndim != 2 or omega.shape[1] != 3:
         raise ValueError(f"omega must be [N, 3], got {tuple(omega.shape)}")
     theta = (omega.square().sum(-1) + 1e-24).sqrt()[:, None, None]
@@ -34,7 +35,9 @@ def rotation_matrices(omega: torch.Tensor) -> torch.Tensor:
     wx, wy, wz = omega.unbind(-1)
     k = torch.stack([zero, -wz, wy, wz, zero, -wx, -wy, wx, zero], dim=-1).reshape(-1, 3, 3)
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
-    return eye + torch.sin(theta) / theta * k + (1.0 - torch.cos(theta)) / theta.square() * (k @ k)
+    with torch.autocast(omega.device.type, enabled=False):  # K² in omega's dtype, not autocast's
+        k2 = k @ k
+    return eye + torch.sin(theta) / theta * k + (1.0 - torch.cos(theta)) / theta.square() * k2
 
 
 class CameraRefinement(torch.nn.Module):
@@ -55,9 +58,10 @@ class CameraRefinement(torch.nn.Module):
     def rays(self, image_indices: torch.Tensor, rays_o: torch.Tensor,
              rays_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Corrected rays: image_indices [N] int64, rays_o and unit rays_d [N, 3] float32 →
-        (o + τ, R(ω) d) [N, 3] float32, differentiable w.r.t. ω and τ (d' stays unit)."""
+        (o + τ, R(ω) d) [N, 3] float32, differentiable w.r.t. ω and τ (d' stays unit). Elementwise
+        products rather than a matmul, so that the rays stay float32 under autocast."""
         rotations = rotation_matrices(self.omega)[image_indices]
-        return rays_o + self.tau[image_indices], (rotations @ rays_d[:, :, None])[:, :, 0]
+        return rays_o + self.tau[image_indices], (rotations * rays_d[:, None, :]).sum(-1)
 
     @torch.no_grad()
     def refined_c2w(self, c2w: torch.Tensor) -> torch.Tensor:

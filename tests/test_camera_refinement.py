@@ -50,6 +50,10 @@ def test_corrected_rays_are_the_rays_of_the_corrected_cameras():
     torch.testing.assert_close(got_o, want_o, rtol=0, atol=1e-5)
     torch.testing.assert_close(got_d, want_d, rtol=0, atol=1e-5)
     assert (got_d - d).abs().max() > 1e-2
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # training runs the batch under autocast
+        autocast_o, autocast_d = cameras.rays(image, o, d)
+    assert autocast_o.dtype == autocast_d.dtype == torch.float32
+    torch.testing.assert_close(autocast_d, got_d, rtol=0, atol=1e-6)
 
 
 def test_bad_settings_are_refused_in_one_line(tiny_scene):  # noqa: F811
