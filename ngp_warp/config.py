@@ -51,6 +51,8 @@ class TrainConfig:
                                         # a sub-pixel grid (as the images were area-downsampled), and
                                         # renders average the same grid; None: 2 on CUDA, 1 on the CPU
     distortion_weight: float = 0.0      # weight of the mean distortion loss per ray (t in world units)
+    near_gradient_distance: float = 0.0  # > 0: σ and colour gradients scaled by min(1, (t / this)²),
+                                        # t from the camera in world units (Floaters No More)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
     camera_lr: float = 1e-3             # its Adam learning rate (instant-ngp's extrinsic_learning_rate)
     field: FieldConfig = field(default_factory=FieldConfig)
@@ -67,7 +69,8 @@ class TrainConfig:
         check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
                                      "steps_per_diagonal"),
                        positive=("seconds", "lr", "occupancy_threshold", "camera_lr"),
-                       non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight"),
+                       non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight",
+                                     "near_gradient_distance"),
                        optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold"))
         if not 0.0 <= self.occupancy_decay < 1.0:
             raise ValueError(f"occupancy_decay must be in [0, 1), got {self.occupancy_decay!r}")

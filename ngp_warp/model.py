@@ -124,7 +124,8 @@ class RadianceModel:
     def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, field_fn: FieldFn, *, background=None,
                stratified: bool = False, sigma_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
                sample_capacity: int | None = None, return_samples: bool = False,
-               before_sync: Callable[[], None] | None = None, ray_images: torch.Tensor | None = None) -> dict:
+               before_sync: Callable[[], None] | None = None, ray_images: torch.Tensor | None = None,
+               near_gradient_distance: float = 0.0) -> dict:
         """Rays ``rays_o``, ``rays_d`` ([N, 3] float32, unit directions) through the grid,
         evaluated by ``field_fn`` (the field, or a graphed stand-in for it): the dict of
         :func:`ngp_warp.render_rays`, whose other keywords these are, with this model's march
@@ -134,5 +135,5 @@ class RadianceModel:
             early_stop_eps=self.early_stop_eps, background=background,
             sigma_fn=sigma_fn, sample_capacity=sample_capacity,
             return_samples=return_samples, before_sync=before_sync, ray_images=ray_images,
-            validate=False,  # the trainer's and renderer's own rays: checked where they are made
+            near_gradient_distance=near_gradient_distance, validate=False,  # the trainer's and renderer's own rays: checked where they are made
         )

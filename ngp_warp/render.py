@@ -104,9 +104,31 @@ def _attached(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor) -
     return dataclasses.replace(samples, positions=samples.positions + (moved - moved.detach()))
 
 
-def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_images: torch.Tensor | None):
+class _ScaleGradient(torch.autograd.Function):
+    """Identity forward; the backward multiplies the gradient by ``scale`` (broadcast)."""
+
+    @staticmethod
+    def forward(ctx, x, scale):
+        ctx.save_for_backward(scale)
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (scale,) = ctx.saved_tensors
+        return grad * scale, None
+
+
+def _near_camera_scale(samples: RaySamples, distance: float) -> torch.Tensor:
+    """[S] float32 ``min(1, (t / distance)²)`` at each sample's midpoint t (Floaters No More)."""
+    t_mid = 0.5 * (samples.t_starts + samples.t_ends)
+    return (t_mid * (1.0 / distance)).square().clamp_max(1.0)
+
+
+def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_images: torch.Tensor | None,
+           near_gradient_distance: float = 0.0):
     """(rgb [N, 3], opacity [N], depth [N], weights [S]) of the samples through ``field_fn``,
-    which also gets each sample's image (padding rows, of ray N: image 0) given ``ray_images``."""
+    which also gets each sample's image (padding rows, of ray N: image 0) given ``ray_images``;
+    the field's outputs' gradients scaled near the ray origins given ``near_gradient_distance``."""
     n_rays, dev = samples.ray_offsets.shape[0] - 1, samples.ray_offsets.device
     n_samples = samples.n_samples
     if n_samples == 0:
@@ -123,14 +145,20 @@ def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_im
                          f"got {getattr(rgbs, 'shape', type(rgbs).__name__)}")
     if sigmas.dim() != 1:  # [S, 1]; a reshape of [S] would add a node to the backward
         sigmas = sigmas.reshape(n_samples)
+    if near_gradient_distance > 0 and torch.is_grad_enabled():
+        scale = _near_camera_scale(samples, near_gradient_distance)
+        sigmas, rgbs = _ScaleGradient.apply(sigmas, scale), _ScaleGradient.apply(rgbs, scale[:, None])
     return composite_packed(sigmas.float().contiguous(), rgbs.float().contiguous(),
                             samples.t_starts, samples.t_ends, samples.ray_offsets, early_stop_eps)
 
 
-def _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images) -> None:
+def _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images,
+                           near_gradient_distance) -> None:
     """render_rays' own arguments (the march checks the rays): one-line ValueErrors."""
     if early_stop_eps < 0:
         raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
+    if not near_gradient_distance >= 0:
+        raise ValueError(f"near_gradient_distance must be ≥ 0, got {near_gradient_distance}")
     if sample_capacity is not None and (sigma_fn is None or sample_capacity < 1):
         raise ValueError("sample_capacity needs a sigma_fn and must be ≥ 1")
     n_rays = rays_o.shape[0]
@@ -155,6 +183,7 @@ def render_rays(
     before_sync: Callable[[], None] | None = None,
     ray_images: torch.Tensor | None = None,
     validate: bool = True,
+    near_gradient_distance: float = 0.0,
 ) -> dict:
     """Render rays through ``grid`` with the radiance field ``field_fn``.
 
@@ -195,6 +224,11 @@ def render_rays(
             directions (read with the march's sample count: no extra host sync) and σ ≥ 0 from
             ``field_fn`` and ``sigma_fn`` (one host sync each); ValueError otherwise. Training
             and rendering loops whose rays and field are known good pass False.
+        near_gradient_distance: > 0: the gradients of each sample's σ and colour are scaled by
+            :math:`\\min(1, (t / \\text{this})^2)`, t its distance along the ray (Philip and
+            Deschaintre's "Floaters No More", 2023): a camera's near space, which few other views
+            see, gets as much gradient per unit of its footprint as far space, and stops growing
+            floaters that explain one image. The values are unchanged.
 
     Returns:
         dict with ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] (float32, differentiable w.r.t.
@@ -205,7 +239,7 @@ def render_rays(
         ``t_ends`` [S] and ``ray_offsets`` [N + 1] int32 (samples of ray r are
         ``ray_offsets[r] : ray_offsets[r+1]``; padding rows lie past ``ray_offsets[N]``).
     """
-    _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images)
+    _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images, near_gradient_distance)
     samples = ray_marching(rays_o, rays_d, grid, march, before_sync=before_sync, validate=validate,
                            unit_directions=True)
     if validate:
@@ -216,7 +250,7 @@ def render_rays(
         samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity)
     if (rays_o.requires_grad or rays_d.requires_grad) and torch.is_grad_enabled():
         samples = _attached(samples, rays_o, rays_d)
-    rgb, opacity, depth, weights = _shade(samples, field_fn, early_stop_eps, ray_images)
+    rgb, opacity, depth, weights = _shade(samples, field_fn, early_stop_eps, ray_images, near_gradient_distance)
     if bg is not None:
         rgb = rgb + bg * (1.0 - opacity)[:, None]
     out = {"rgb": rgb, "opacity": opacity, "depth": depth, "n_samples": samples.n_samples, **extra}

@@ -147,7 +147,7 @@ class Trainer:
             rays_o, rays_d, phases.field, background=None, stratified=True,
             sigma_fn=phases.density if cfg.prune else None, sample_capacity=capacity,
             return_samples=cfg.distortion_weight > 0, before_sync=phases.optimizer_update,
-            ray_images=self.batch_images)
+            ray_images=self.batch_images, near_gradient_distance=cfg.near_gradient_distance)
 
     def step(self, progress: float = 0.0) -> dict:
         """One update on about ``target_samples`` samples, ``progress`` in [0, 1] through the

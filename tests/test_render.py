@@ -110,6 +110,39 @@ def test_gradients_reach_rays_that_require_them_like_a_float64_pipeline(pruned):
     assert o.grad.abs().max() > 1e-2 and d.grad.abs().max() > 1e-2
 
 
+def test_near_gradient_scaling_scales_each_samples_gradient_by_its_squared_distance():
+    grid = sphere_grid(16)
+    rays_o, rays_d = camera_rays(64)
+    rays_o = rays_o * 0.8  # origins at 2.4, the sphere's near side at about 1.8: scales from ~0.4 to 1
+    amount = torch.tensor(1.3, requires_grad=True)
+
+    def field(positions, directions):
+        sigma, rgb = blob_field(positions, directions)
+        return sigma * amount, rgb * amount
+
+    values = []
+    for distance in (0.0, 2.5):
+        out = render_rays(rays_o, rays_d, grid, field, MarchOptions(step_size=0.01), near_gradient_distance=distance,
+                          return_samples=True)
+        (out["rgb"] * torch.tensor([1.0, -0.5, 0.3])).sum().backward()
+        values.append((out["rgb"].detach(), amount.grad.clone()))
+        amount.grad = None
+    torch.testing.assert_close(values[0][0], values[1][0], rtol=0, atol=0)  # values unchanged
+
+    # float64: the same samples, each field output's gradient times min(1, (t / 2.5)²)
+    s = ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.01))
+    scale = ((0.5 * (s.t_starts + s.t_ends)).double() / 2.5).square().clamp_max(1.0)
+    sigmas, rgbs = field(s.positions.double(), s.directions.double())
+    sigmas = sigmas * scale + (sigmas * (1 - scale)).detach()
+    rgbs = rgbs * scale[:, None] + (rgbs * (1 - scale[:, None])).detach()
+    rgb, _, _, _ = composite_ref.composite(sigmas, rgbs, s.t_starts, s.t_ends, s.ray_indices, 64, 1e-4)
+    (rgb * torch.tensor([1.0, -0.5, 0.3], dtype=torch.float64)).sum().backward()
+    torch.testing.assert_close(values[1][1], amount.grad.float(), rtol=1e-4, atol=1e-6)
+    assert values[1][1].abs() < 0.9 * values[0][1].abs()  # the scaling took some of it away
+    with pytest.raises(ValueError, match="near_gradient_distance"):
+        render_rays(rays_o, rays_d, grid, field, near_gradient_distance=-1.0)
+
+
 def test_rays_without_grad_leave_the_positions_alone():
     grid = sphere_grid(16)
     rays_o, rays_d = camera_rays(32)
