@@ -11,7 +11,7 @@ from ngp_warp._checks import check_numbers
 from ngp_warp.data import Scene
 from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig
 from ngp_warp.scene_defaults import (appearance_dim, choose_contraction, cone_steps, contraction_box,
-                                     occupancy_threshold)
+                                     distortion_weight, occupancy_threshold)
 from ngp_warp.transforms_json import CONTRACTIONS
 
 
@@ -50,7 +50,8 @@ class TrainConfig:
     supersample: int | None = None      # > 1: each training pixel is the mean of supersample² rays on
                                         # a sub-pixel grid (as the images were area-downsampled), and
                                         # renders average the same grid; None: 2 on CUDA, 1 on the CPU
-    distortion_weight: float = 0.0      # weight of the mean distortion loss per ray (t in world units)
+    distortion_weight: float | None = None  # weight of the mean distortion loss per ray (t in world units);
+                                        # None: per scene (1e-4 on bounded captures, else 0)
     near_gradient_distance: float = 0.0  # > 0: σ and colour gradients scaled by min(1, (t / this)²),
                                         # t from the camera in world units (Floaters No More)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
@@ -71,7 +72,8 @@ class TrainConfig:
                        positive=("seconds", "lr", "occupancy_threshold", "camera_lr"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight",
                                      "near_gradient_distance"),
-                       optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold"))
+                       optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold",
+                                 "distortion_weight"))
         if not 0.0 <= self.occupancy_decay < 1.0:
             raise ValueError(f"occupancy_decay must be in [0, 1), got {self.occupancy_decay!r}")
         if not 0.0 <= self.weight_average < 1.0:
@@ -197,7 +199,8 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str 
 def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> TrainConfig:
     """``config``, checked, or a copy with the settings left to None or "auto" filled in for the
     device (:func:`device_defaults`) and the scene (:mod:`ngp_warp.scene_defaults`: the
-    contraction, the cone angle, the occupancy threshold and the appearance code size; the finest resolution, by
+    contraction, the cone angle, the occupancy threshold, the distortion weight and the appearance code size;
+    the finest resolution, by
     :func:`pixel_matched_resolution`), so that checkpoints store the values used. Raises
     ValueError naming a setting out of range."""
     config.check()
@@ -206,7 +209,9 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     cone = cone_steps(scene, kind)[0] if config.cone_angle is None else config.cone_angle
     threshold = config.occupancy_threshold
     threshold = occupancy_threshold(scene) if threshold is None else threshold
-    config = dataclasses.replace(config, contraction=kind, cone_angle=cone, occupancy_threshold=threshold)
+    distortion = distortion_weight(scene, kind) if config.distortion_weight is None else config.distortion_weight
+    config = dataclasses.replace(config, contraction=kind, cone_angle=cone, occupancy_threshold=threshold,
+                                 distortion_weight=distortion)
     field_config = config.field
     if field_config.appearance_dim is None:
         field_config = dataclasses.replace(field_config, appearance_dim=appearance_dim(scene))

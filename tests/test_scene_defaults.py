@@ -9,7 +9,7 @@ import torch
 from ngp_warp.config import TrainConfig, resolve_defaults
 from ngp_warp.data import DataError, load_scene
 from ngp_warp.scene_defaults import (appearance_dim, cameras_surround_centre, choose_contraction, cone_steps,
-                                     occupancy_threshold,
+                                     distortion_weight, occupancy_threshold,
                                      contraction_box)
 from ngp_warp.scene_unbounded import write_unbounded_scene
 
@@ -58,6 +58,11 @@ def test_unbounded_scene_asks_for_contraction_and_gets_cone_steps(tmp_path):
     assert occupancy_threshold(scene) == 0.05  # a capture's grid, stricter than instant-ngp's 0.01
     assert resolve_defaults(TrainConfig(), scene, "cpu").occupancy_threshold == 0.05
     assert resolve_defaults(TrainConfig(occupancy_threshold=0.2), scene, "cpu").occupancy_threshold == 0.2
+    # the distortion loss on bounded captures only: not this contracted scene, unless asked
+    assert distortion_weight(scene, "l2") == 0.0 and distortion_weight(scene, None) == 1e-4
+    assert resolve_defaults(TrainConfig(), scene, "cpu").distortion_weight == 0.0
+    assert resolve_defaults(TrainConfig(contraction=None), scene, "cpu").distortion_weight == 1e-4
+    assert resolve_defaults(TrainConfig(distortion_weight=0.5), scene, "cpu").distortion_weight == 0.5
     with pytest.raises(ValueError, match="contraction must be"):
         choose_contraction("sphere", scene)
 
@@ -70,3 +75,11 @@ def test_bad_contraction_key_is_one_line_data_error(tmp_path):
     with pytest.raises(DataError, match="contraction must be one of l2, linf or null") as err:
         load_scene(folder)
     assert "\n" not in str(err.value)
+
+
+def test_nerf_synthetic_scenes_get_no_distortion_loss(tmp_path):
+    from ngp_warp.scene import write_demo_scene
+
+    scene = load_scene(write_demo_scene(tmp_path / "demo", width=8, height=8, n_train=3, n_test=1))
+    assert scene.source == "nerf-synthetic" and distortion_weight(scene, None) == 0.0
+    assert resolve_defaults(TrainConfig(), scene, "cpu").distortion_weight == 0.0
