@@ -13,7 +13,7 @@ import torch
 
 from tqdm import tqdm
 
-from ngp_warp.appearance_fit import FIT_ITERATIONS, fit_appearance_code, right_half
+from ngp_warp.appearance_fit import FIT_ITERATIONS, fit_appearance_and_pose, fit_appearance_code, right_half
 from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.lpips import lpips_or_reason, lpips_summary
 from ngp_warp.metrics import SSIM_WINDOW, psnr, ssim
@@ -53,7 +53,9 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     ``fit_appearance``, with the code fitted on the left half of its ground truth
     (:func:`~ngp_warp.appearance_fit.fit_appearance_code`, in the render dict as
     ``appearance_code`` [A]): score such a view on the right half only
-    (:func:`~ngp_warp.appearance_fit.right_half`)."""
+    (:func:`~ngp_warp.appearance_fit.right_half`). When the run refined its training cameras
+    (``camera_refinement``), whose corrections move the scene's frame a little, the fit takes the
+    view's pose as well (:func:`~ngp_warp.appearance_fit.fit_appearance_and_pose`)."""
     split = trainer.scene.test if split is None else split
     white = torch.ones(3, device=trainer.device)
     background = 0.0 if trainer.black_background else 1.0
@@ -61,7 +63,12 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     for i in range(0, len(split.names), every):
         camera = split.camera(i)
         gt = composite_on(split.images[i].to(trainer.device), white)
-        code = fit_appearance_code(trainer, **camera, image=gt, background=background) if fit else None
+        code = None
+        if fit and trainer.cameras is not None:
+            code, c2w = fit_appearance_and_pose(trainer, **camera, image=gt, background=background)
+            camera = {**camera, "c2w": c2w}
+        elif fit:
+            code = fit_appearance_code(trainer, **camera, image=gt, background=background)
         out = trainer.render_image(**camera, background=background, spp=spp, appearance_code=code)
         if fit:
             out["appearance_code"] = code
@@ -104,8 +111,9 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
             bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
             bar.update()
         bar.close()
-    appearance = {"appearance": f"code fitted on the left half ({FIT_ITERATIONS} iterations), scored on the "
-                                f"right half",
+    posed = " and pose" if trainer.cameras is not None else ""
+    appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations), scored on "
+                                f"the right half",
                   "psnr_mean_code": float(np.mean([m["psnr_mean_code"] for m in per_image]))} if fitted else {}
     metrics = {
         "psnr": float(np.mean([m["psnr"] for m in per_image])),

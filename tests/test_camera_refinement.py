@@ -134,3 +134,15 @@ def test_a_views_fitted_pose_turns_back_towards_the_true_one(tiny_scene):  # noq
     with pytest.raises(ValueError, match="bounded field"):
         trainer.field.contraction = "l2"
         fit_appearance_and_pose(trainer, **camera, image=target, iterations=1)
+
+
+def test_evaluation_of_a_refined_run_fits_each_views_pose(tiny_scene, tmp_path):  # noqa: F811
+    from ngp_warp.evaluate import evaluate
+
+    cfg = tiny_config(20)
+    cfg.camera_refinement, cfg.field.appearance_dim = True, 4
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+    trainer.train(show_progress=False)
+    metrics = evaluate(trainer, tmp_path, show_progress=False)
+    assert metrics["appearance"].startswith("code and pose fitted on the left half")
+    assert len(metrics["per_image"]) == 3 and all(math.isfinite(m["psnr"]) for m in metrics["per_image"])
