@@ -22,8 +22,8 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
+from fit_study import trainer_or_usage_error
 from ngp_warp.appearance_fit import fit_appearance_code, right_half
-from ngp_warp.checkpoint import CheckpointError, load_trainer
 from ngp_warp.evaluate import composite_on, to_uint8
 
 RINGS = 4
@@ -74,12 +74,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.train_every < 1:
         ap.error(f"--train-every must be ≥ 1, got {args.train_every}")
-    try:
-        trainer, _ = load_trainer(Path(args.run) / "checkpoint.pt", device=args.device)
-    except CheckpointError as e:
-        ap.error(str(e))
-    if trainer.field.appearance is None:
-        ap.error("this run's field has no appearance codes")
+    trainer = trainer_or_usage_error(ap, args.run, args.device, need_codes=True)
     background = 0.0 if trainer.black_background else 1.0
     scene = trainer.scene
     held_out = [view_errors(trainer, scene.test, i, background) for i in range(len(scene.test.names))]

@@ -28,6 +28,19 @@ DEFAULT_FITS = [f"{FIT_ITERATIONS}:{FIT_LR}:0", f"{FIT_ITERATIONS}:{FIT_LR}:1", 
                 f"{3 * FIT_ITERATIONS}:{FIT_LR}:0", f"{3 * FIT_ITERATIONS}:{FIT_LR / 3}:0"]
 
 
+def trainer_or_usage_error(ap: argparse.ArgumentParser, run: str, device: str, need_codes: bool = False):
+    """The trainer of the run folder ``run``'s checkpoint, or argparse's usage error with the
+    one-line reason (a missing or foreign checkpoint; a field without appearance codes when
+    ``need_codes``)."""
+    try:
+        trainer, _ = load_trainer(Path(run) / "checkpoint.pt", device=device)
+    except CheckpointError as e:
+        ap.error(str(e))
+    if need_codes and trainer.field.appearance is None:
+        ap.error("this run's field has no appearance codes")
+    return trainer
+
+
 def _parse_fit(spec: str) -> tuple[int, float, int, bool]:
     parts = spec.split(":")
     if len(parts) not in (3, 4) or (len(parts) == 4 and parts[3] != "pose"):
@@ -45,12 +58,7 @@ def main() -> None:
         fits = [_parse_fit(f) for f in args.fit]
     except ValueError:
         ap.error(f"--fit takes ITERATIONS:LR:SEED[:pose], got {' '.join(args.fit)}")
-    try:
-        trainer, _ = load_trainer(Path(args.run) / "checkpoint.pt", device=args.device)
-    except CheckpointError as e:
-        ap.error(str(e))
-    if trainer.field.appearance is None:
-        ap.error("this run's field has no appearance codes")
+    trainer = trainer_or_usage_error(ap, args.run, args.device, need_codes=True)
     split, white = trainer.scene.test, torch.ones(3, device=trainer.device)
     background = 0.0 if trainer.black_background else 1.0
     rows = []

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fit_study import trainer_or_usage_error
 from ngp_warp.cameras import generate_rays
-from ngp_warp.checkpoint import CheckpointError, load_trainer
 
 
 def front_weights(trainer, camera: dict, n_rays: int, seed: int = 0) -> dict:
@@ -57,10 +57,7 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=65536)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = ap.parse_args()
-    try:
-        trainer, _ = load_trainer(Path(args.run) / "checkpoint.pt", device=args.device)
-    except CheckpointError as e:
-        ap.error(str(e))
+    trainer = trainer_or_usage_error(ap, args.run, args.device)
     split = trainer.scene.test
     names = [Path(n).name for n in split.names]
     view = args.view

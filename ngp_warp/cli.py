@@ -101,7 +101,10 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         downscale = record["downscale"]
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
-        trainer = Trainer(scene, config, device=device)
+        try:  # its ValueErrors name a setting that does not suit this scene
+            trainer = Trainer(scene, config, device=device)
+        except ValueError as e:
+            raise UserError(f"--set: {e}") from None
     if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
         from ngp_warp.distributed import is_main_rank, make_data_parallel
 
@@ -123,6 +126,10 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
 
     _train(trainer, save, folder, args)
     save()
+    if trainer.cameras is not None:
+        c = trainer.cameras.summary()
+        print(f"camera refinement: rotations {c['rotation_deg_mean']:.3f}° mean, {c['rotation_deg_max']:.3f}° largest; "
+              f"shifts {c['translation_mean']:.4f} mean, {c['translation_max']:.4f} largest", file=sys.stderr)
     metrics = evaluate(trainer, out, show_progress=not args.quiet)
     if not args.no_video:
         train = scene.train
@@ -163,7 +170,8 @@ def _print_metrics(metrics: dict, out: Path) -> None:
           f"({metrics['n_test_images']} images, {metrics['steps']} steps, "
           f"{metrics['train_seconds']:.1f} s training on {metrics['device']})")
     if metrics.get("psnr_mean_code") is not None:
-        print(f"  (right halves, each view's appearance code fitted on its left half; whole images with the "
+        fitted = "appearance code and pose" if " and pose " in metrics["appearance"] else "appearance code"
+        print(f"  (right halves, each view's {fitted} fitted on its left half; whole images with the "
               f"mean code: PSNR {metrics['psnr_mean_code']:.2f} dB)")
     print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
 

@@ -93,7 +93,8 @@ def _pruned(samples: RaySamples, sigma_fn, grid: OccupancyGrid, early_stop_eps: 
 
 
 def _attached(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor) -> RaySamples:
-    """``samples`` whose positions carry the gradient to the rays that require it: the march's
+    """``samples`` whose positions carry the gradient to the rays that require it (for camera
+    refinement, :mod:`ngp_warp.camera_refinement`): the march's
     positions plus :math:`(o + t d) - \\mathrm{sg}(o + t d)` of each sample's ray at its midpoint
     :math:`t` (zero in value; padding rows, of ray N, get none), so that
     :math:`\\partial x / \\partial o = I` and :math:`\\partial x / \\partial d = t I` with the
@@ -119,7 +120,10 @@ class _ScaleGradient(torch.autograd.Function):
 
 
 def _near_camera_scale(samples: RaySamples, distance: float) -> torch.Tensor:
-    """[S] float32 ``min(1, (t / distance)²)`` at each sample's midpoint t (Floaters No More)."""
+    """[S] float32 ``min(1, (t / distance)²)`` at each sample's midpoint t: Philip and
+    Deschaintre's "Floaters No More" (2023). A camera's near space, which few other views see,
+    gets as much gradient per unit of its footprint as far space, and stops growing floaters
+    that explain one image; the rendered values are unchanged."""
     t_mid = 0.5 * (samples.t_starts + samples.t_ends)
     return (t_mid * (1.0 / distance)).square().clamp_max(1.0)
 
@@ -169,21 +173,11 @@ def _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ra
 
 
 def render_rays(
-    rays_o: torch.Tensor,
-    rays_d: torch.Tensor,
-    grid: OccupancyGrid,
-    field_fn: FieldFn,
-    march: MarchOptions = MarchOptions(),
-    *,
-    early_stop_eps: float = 1e-4,
-    background=None,
-    sigma_fn: Callable[[torch.Tensor], torch.Tensor] | None = None,
-    sample_capacity: int | None = None,
-    return_samples: bool = False,
-    before_sync: Callable[[], None] | None = None,
-    ray_images: torch.Tensor | None = None,
-    validate: bool = True,
-    near_gradient_distance: float = 0.0,
+    rays_o: torch.Tensor, rays_d: torch.Tensor, grid: OccupancyGrid, field_fn: FieldFn,
+    march: MarchOptions = MarchOptions(), *, early_stop_eps: float = 1e-4, background=None,
+    sigma_fn: Callable[[torch.Tensor], torch.Tensor] | None = None, sample_capacity: int | None = None,
+    return_samples: bool = False, before_sync: Callable[[], None] | None = None,
+    ray_images: torch.Tensor | None = None, validate: bool = True, near_gradient_distance: float = 0.0,
 ) -> dict:
     """Render rays through ``grid`` with the radiance field ``field_fn``.
 
@@ -196,9 +190,7 @@ def render_rays(
 
     Args:
         rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 unit directions. Rays that
-            require grad get it through the sample positions, the march's distances held fixed
-            (for camera refinement, :mod:`ngp_warp.camera_refinement`); not through the
-            directions given to ``field_fn``.
+            require grad get it through the sample positions (:func:`_attached`).
         grid: :class:`ngp_warp.OccupancyGrid` on the rays' device.
         field_fn: ``(positions [S, 3] float32, directions [S, 3] float32) → (sigmas [S] or
             [S, 1] ≥ 0, rgbs [S, 3])``; not called when no ray has a sample.
@@ -224,11 +216,8 @@ def render_rays(
             directions (read with the march's sample count: no extra host sync) and σ ≥ 0 from
             ``field_fn`` and ``sigma_fn`` (one host sync each); ValueError otherwise. Training
             and rendering loops whose rays and field are known good pass False.
-        near_gradient_distance: > 0: the gradients of each sample's σ and colour are scaled by
-            :math:`\\min(1, (t / \\text{this})^2)`, t its distance along the ray (Philip and
-            Deschaintre's "Floaters No More", 2023): a camera's near space, which few other views
-            see, gets as much gradient per unit of its footprint as far space, and stops growing
-            floaters that explain one image. The values are unchanged.
+        near_gradient_distance: > 0: each sample's σ and colour gradients are scaled by
+            :math:`\\min(1, (t / \\text{this})^2)` (:func:`_near_camera_scale`).
 
     Returns:
         dict with ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] (float32, differentiable w.r.t.

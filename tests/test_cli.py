@@ -129,3 +129,16 @@ def test_eval_of_a_missing_folder_creates_nothing(tmp_path, capsys):
     assert main(["eval", str(tmp_path / "missing"), "--device", "cpu"]) == 2
     one_line_error(capsys)
     assert not (tmp_path / "missing").exists()
+
+
+def test_camera_refinement_reports_its_corrections_and_refuses_contracted_scenes(scene, tmp_path, capsys):
+    out = tmp_path / "refined"
+    assert main(["train", str(scene), "--out", str(out), "--steps", "10", "--no-video", "--set", "camera_refinement=true",
+                 "--set", "field.appearance_dim=4", *FAST]) == 0
+    captured = capsys.readouterr()
+    assert "camera refinement: rotations" in captured.err
+    assert "each view's appearance code and pose fitted on its left half" in captured.out
+    assert main(["train", str(scene), "--out", str(tmp_path / "contracted"), "--steps", "10", "--no-video",
+                 "--set", "camera_refinement=true", "--set", "contraction=l2", *FAST]) == 2
+    assert "camera_refinement needs a bounded scene" in one_line_error(capsys)
+    assert not (tmp_path / "contracted").exists()
