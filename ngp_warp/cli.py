@@ -57,9 +57,9 @@ def _with_settings(cfg, args):
 
 
 def _train_config(args):
-    from ngp_warp.config import TrainConfig
-
-    return _with_settings(TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed), args)
+    from ngp_warp.config import TrainConfig, cpu_sizes
+    cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
+    return _with_settings(cpu_sizes(cfg) if _device(args.device) == "cpu" else cfg, args)  # --set overrides
 
 
 def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
@@ -127,9 +127,9 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     _train(trainer, save, folder, args)
     save()
     if trainer.cameras is not None:
-        c = trainer.cameras.summary()
-        print(f"camera refinement: rotations {c['rotation_deg_mean']:.3f}° mean, {c['rotation_deg_max']:.3f}° largest; "
-              f"shifts {c['translation_mean']:.4f} mean, {c['translation_max']:.4f} largest", file=sys.stderr)
+        print("camera refinement: rotations {rotation_deg_mean:.3f}° mean, {rotation_deg_max:.3f}° largest; shifts "
+              "{translation_mean:.4f} mean, {translation_max:.4f} largest".format(**trainer.cameras.summary()),
+              file=sys.stderr)
     metrics = evaluate(trainer, out, show_progress=not args.quiet)
     if not args.no_video:
         train = scene.train

@@ -5,8 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from ngp_warp.config import TrainConfig
-from ngp_warp.field import FieldConfig
+from ngp_warp.config import TrainConfig, cpu_sizes
 from ngp_warp.scene import write_demo_scene
 from ngp_warp.scene_unbounded import write_unbounded_scene
 
@@ -19,9 +18,8 @@ def demo_config(device: str, steps: int | None, seconds: float | None, seed: int
     if steps is None and seconds is None:
         seconds = 150.0 if device == "cpu" else 30.0
     if device == "cpu":
-        return TrainConfig(steps=steps, seconds=seconds, seed=seed, target_samples=1 << 13,
-                           grid_resolution=64, steps_per_diagonal=512,
-                           field=FieldConfig(log2_hashmap_size=16))
+        return cpu_sizes(TrainConfig(steps=steps, seconds=seconds, seed=seed, target_samples=1 << 13,
+                                     steps_per_diagonal=512))
     return TrainConfig(steps=steps, seconds=seconds, seed=seed)
 
 

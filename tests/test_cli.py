@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import torch
 
 from ngp_warp import _wp
 from ngp_warp.cli import main
@@ -142,3 +143,14 @@ def test_camera_refinement_reports_its_corrections_and_refuses_contracted_scenes
                  "--set", "camera_refinement=true", "--set", "contraction=l2", *FAST]) == 2
     assert "camera_refinement needs a bounded scene" in one_line_error(capsys)
     assert not (tmp_path / "contracted").exists()
+
+
+def test_cpu_training_gets_the_cpus_sizes_unless_set(scene, tmp_path, capsys):
+    out = tmp_path / "cpu"
+    assert main(["train", str(scene), "--out", str(out), "--steps", "3", "--no-video", *FAST]) == 0
+    assert "table 2^16 per level" in capsys.readouterr().err
+    saved = torch.load(out / "checkpoint.pt", weights_only=False)["train_config"]
+    assert saved["grid_resolution"] == 64 and saved["field"]["log2_hashmap_size"] == 16
+    assert main(["train", str(scene), "--out", str(tmp_path / "set"), "--steps", "3", "--no-video",
+                 "--set", "field.log2_hashmap_size=14", "--set", "grid_resolution=32", *FAST]) == 0
+    assert "table 2^14 per level" in capsys.readouterr().err
