@@ -56,10 +56,10 @@ def _with_settings(cfg, args):
         raise UserError(f"--set: {e}") from None
 
 
-def _train_config(args):
+def _train_config(args, device: str | None = None):  # device: resolved already, else args.device's
     from ngp_warp.config import TrainConfig, cpu_sizes
     cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
-    return _with_settings(cpu_sizes(cfg) if _device(args.device) == "cpu" else cfg, args)  # --set overrides
+    return _with_settings(cpu_sizes(cfg) if (device or _device(args.device)) == "cpu" else cfg, args)  # --set wins
 
 
 def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:

@@ -256,7 +256,7 @@ def load_target(args, device: str):
         return load_trainer(target / CHECKPOINT, device=device, scene_path=args.scene)[0], False
     if not target.exists():
         raise UserError(f"{target}: no such run or scene folder")
-    config = _train_config(args)
+    config = _train_config(args, device)
     return Trainer(load_scene(target, downscale=args.downscale), config, device=device), True
 
 

@@ -76,6 +76,7 @@ def test_a_scene_folder_is_trained_live(scene_dir):
     trainer, live = load_target(args, "cpu")
     assert live and trainer.step_count == 0 and trainer.config.budget() == (7, None)
     assert trainer.scene.train.width == 16 and trainer.config.grid_resolution == 32
+    assert trainer.config.field.log2_hashmap_size == 16  # the CPU's table (config.cpu_sizes)
 
 
 def test_view_of_a_missing_folder_is_one_line(tmp_path, capsys):
