@@ -257,7 +257,11 @@ def load_target(args, device: str):
     if not target.exists():
         raise UserError(f"{target}: no such run or scene folder")
     config = _train_config(args, device)
-    return Trainer(load_scene(target, downscale=args.downscale), config, device=device), True
+    scene = load_scene(target, downscale=args.downscale)
+    try:  # its ValueErrors name a setting that does not suit this scene
+        return Trainer(scene, config, device=device), True
+    except ValueError as e:
+        raise UserError(f"--set: {e}") from None
 
 
 def cmd_view(args) -> None:

@@ -79,6 +79,13 @@ def test_a_scene_folder_is_trained_live(scene_dir):
     assert trainer.config.field.log2_hashmap_size == 16  # the CPU's table (config.cpu_sizes)
 
 
+def test_a_setting_that_does_not_suit_the_scene_is_one_line(scene_dir, capsys):
+    assert main(["view", str(scene_dir), "--device", "cpu", "--set", "camera_refinement=true",
+                 "--set", "contraction=l2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("ngp-warp: error: --set: camera_refinement needs a bounded scene"), err
+
+
 def test_view_of_a_missing_folder_is_one_line(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope"), "--device", "cpu"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
