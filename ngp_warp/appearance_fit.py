@@ -176,12 +176,13 @@ def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, dist
         adam = torch.optim.Adam([code], lr=lr)
         field_fn = _field_with_code(field, code) if pose is None else _field_with_code_and_positions(field, code)
         pose_adam = None if pose is None else torch.optim.Adam([pose.omega, pose.tau], lr=POSE_LR, eps=1e-15)
+        pose_index = torch.zeros(px_all.shape[1], dtype=torch.long, device=dev)  # every ray: the one pose
         for it, (px, py) in enumerate(zip(px_all, py_all)):
             n = px.shape[0]
             rays_o, rays_d = generate_rays(c2w_n.expand(n, 3, 4), intr_n.expand(n, 4),
                                            None if dist_n is None else dist_n.expand(n, 6), px, py, fisheye=fisheye)
             if pose is not None:
-                rays_o, rays_d = pose.rays(torch.zeros(n, dtype=torch.long, device=dev), rays_o, rays_d)
+                rays_o, rays_d = pose.rays(pose_index, rays_o, rays_d)
             with trainer.model.precision():
                 out = trainer.model.render(rays_o, rays_d, field_fn, background=background,
                                            sigma_fn=field.density)

@@ -84,10 +84,9 @@ class CameraRefinement(torch.nn.Module):
         """Adam over ω and τ with learning rate ``lr`` and the L2 pull :data:`L2_PULL`."""
         return torch.optim.Adam([self.omega, self.tau], lr=lr, weight_decay=L2_PULL, eps=1e-15)
 
-    def summary(self) -> dict:
-        """Mean and largest correction: ``rotation_deg`` and ``translation`` (world units), floats."""
-        with torch.no_grad():
-            angles = self.omega.norm(dim=-1).rad2deg()
-            shifts = self.tau.norm(dim=-1)
-            return {"rotation_deg_mean": float(angles.mean()), "rotation_deg_max": float(angles.max()),
-                    "translation_mean": float(shifts.mean()), "translation_max": float(shifts.max())}
+    @torch.no_grad()
+    def summary(self) -> str:
+        """The mean and largest rotation (degrees) and shift (world units), in words."""
+        angles, shifts = self.omega.norm(dim=-1).rad2deg(), self.tau.norm(dim=-1)
+        return (f"rotations {float(angles.mean()):.3f}° mean, {float(angles.max()):.3f}° largest; "
+                f"shifts {float(shifts.mean()):.4f} mean, {float(shifts.max()):.4f} largest")

@@ -62,6 +62,15 @@ def _train_config(args, device: str | None = None):  # device: resolved already,
     return _with_settings(cpu_sizes(cfg) if (device or _device(args.device)) == "cpu" else cfg, args)  # --set wins
 
 
+def new_trainer(scene, config, device: str):
+    """A Trainer; its ValueErrors, which name a setting that does not suit the scene, as UserError."""
+    from ngp_warp.trainer import Trainer
+    try:
+        return Trainer(scene, config, device=device)
+    except ValueError as e:
+        raise UserError(f"--set: {e}") from None
+
+
 def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
     """Train (or resume), checkpoint, evaluate and render into ``out`` (a folder of one run:
     :class:`ngp_warp.run_folder.RunFolder`)."""
@@ -86,8 +95,8 @@ def _train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
 def _run(scene, scene_path: Path, folder, args, device: str, config, resume: bool) -> dict:
     from ngp_warp.checkpoint import load_trainer, save_checkpoint
     from ngp_warp.camera_path import around_cameras
+    from ngp_warp.video_out import render_trainer_video
     from ngp_warp.evaluate import evaluate
-    from ngp_warp.trainer import Trainer
 
     out = folder.path
     ckpt = out / CHECKPOINT
@@ -101,10 +110,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         downscale = record["downscale"]
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
-        try:  # its ValueErrors name a setting that does not suit this scene
-            trainer = Trainer(scene, config, device=device)
-        except ValueError as e:
-            raise UserError(f"--set: {e}") from None
+        trainer = new_trainer(scene, config, device)
     if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
         from ngp_warp.distributed import is_main_rank, make_data_parallel
 
@@ -127,16 +133,14 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     _train(trainer, save, folder, args)
     save()
     if trainer.cameras is not None:
-        print("camera refinement: rotations {rotation_deg_mean:.3f}° mean, {rotation_deg_max:.3f}° largest; shifts "
-              "{translation_mean:.4f} mean, {translation_max:.4f} largest".format(**trainer.cameras.summary()),
-              file=sys.stderr)
+        print(f"camera refinement: {trainer.cameras.summary()}", file=sys.stderr)
     metrics = evaluate(trainer, out, show_progress=not args.quiet)
     if not args.no_video:
         train = scene.train
         centre = ((scene.aabb[:3] + scene.aabb[3:]) / 2).cpu()
         orbit = around_cameras("orbit", train.c2w, train.intrinsics, train.width, train.height, centre,
                                args.frames, ORBIT_FPS)
-        video = _render_video(trainer, orbit, out / "orbit.mp4", depth=False, quiet=args.quiet)[0]
+        video = render_trainer_video(trainer, orbit, out / "orbit.mp4", depth=False, quiet=args.quiet)[0]
         print(f"orbit video: {video}", file=sys.stderr)
     return metrics
 
@@ -222,22 +226,9 @@ def cmd_eval(args) -> None:
     _print_metrics(evaluate(trainer, out, show_progress=not args.quiet), out)
 
 
-def _render_video(trainer, path, out: Path, depth: bool, quiet: bool) -> list[Path]:
-    """The video (and with ``depth`` its depth video) of a camera path through the trained field, on
-    white (black where the field learns the background, as in evaluation)."""
-    from ngp_warp.video_out import render_path_video
-
-    background = 0.0 if trainer.black_background else 1.0
-
-    def frame(c2w, intrinsics, width, height):
-        return trainer.render_image(c2w, intrinsics, width, height, background=background)
-
-    return render_path_video(frame, path, out, depth=depth, show_progress=not quiet)
-
-
 def cmd_render(args) -> None:
     from ngp_warp.checkpoint import load_trainer
-    from ngp_warp.video_out import PATH_KINDS, camera_path_from_args
+    from ngp_warp.video_out import PATH_KINDS, camera_path_from_args, render_trainer_video
 
     video = Path(args.video)
     if video.suffix.lower() not in (".mp4", ".gif"):
@@ -254,7 +245,7 @@ def cmd_render(args) -> None:
         path = camera_path_from_args(args, trainer.scene, record["path"])
     except ValueError as e:
         raise UserError(str(e)) from None
-    for written in _render_video(trainer, path, video, depth=args.depth_video, quiet=args.quiet):
+    for written in render_trainer_video(trainer, path, video, depth=args.depth_video, quiet=args.quiet):
         print(f"wrote {written}")
 
 

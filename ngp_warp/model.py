@@ -135,5 +135,6 @@ class RadianceModel:
             early_stop_eps=self.early_stop_eps, background=background,
             sigma_fn=sigma_fn, sample_capacity=sample_capacity,
             return_samples=return_samples, before_sync=before_sync, ray_images=ray_images,
-            near_gradient_distance=near_gradient_distance, validate=False,  # the trainer's and renderer's own rays: checked where they are made
+            near_gradient_distance=near_gradient_distance,
+            validate=False,  # the trainer's and renderer's own rays: checked where they are made
         )

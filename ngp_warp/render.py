@@ -92,6 +92,11 @@ def _pruned(samples: RaySamples, sigma_fn, grid: OccupancyGrid, early_stop_eps: 
     return samples, extra
 
 
+def _midpoints(samples: RaySamples) -> torch.Tensor:
+    """[S] float32 distance of each sample's midpoint along its ray (where the march put its position)."""
+    return 0.5 * (samples.t_starts + samples.t_ends)
+
+
 def _attached(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor) -> RaySamples:
     """``samples`` whose positions carry the gradient to the rays that require it (for camera
     refinement, :mod:`ngp_warp.camera_refinement`): the march's
@@ -100,8 +105,7 @@ def _attached(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor) -
     :math:`\\partial x / \\partial o = I` and :math:`\\partial x / \\partial d = t I` with the
     distances held fixed. Directions stay detached."""
     rays = torch.nn.functional.pad(torch.stack([rays_o, rays_d]), (0, 0, 0, 1))[:, samples.ray_indices]
-    t_mid = (0.5 * (samples.t_starts + samples.t_ends))[:, None]
-    moved = rays[0] + t_mid * rays[1]
+    moved = rays[0] + _midpoints(samples)[:, None] * rays[1]
     return dataclasses.replace(samples, positions=samples.positions + (moved - moved.detach()))
 
 
@@ -124,8 +128,7 @@ def _near_camera_scale(samples: RaySamples, distance: float) -> torch.Tensor:
     Deschaintre's "Floaters No More" (2023). A camera's near space, which few other views see,
     gets as much gradient per unit of its footprint as far space, and stops growing floaters
     that explain one image; the rendered values are unchanged."""
-    t_mid = 0.5 * (samples.t_starts + samples.t_ends)
-    return (t_mid * (1.0 / distance)).square().clamp_max(1.0)
+    return (_midpoints(samples) * (1.0 / distance)).square().clamp_max(1.0)
 
 
 def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_images: torch.Tensor | None,

@@ -96,6 +96,17 @@ def render_path_video(render_frame: RenderFrame, path: CameraPath, out: str | Pa
 
 # ---- command line -----------------------------------------------------------------------------
 
+def render_trainer_video(trainer, path: CameraPath, out: Path, depth: bool, quiet: bool) -> list[Path]:
+    """The video (and with ``depth`` its depth video) of a camera path through a trainer's field, on
+    white (black where the field learns the background, as in evaluation)."""
+    background = 0.0 if trainer.black_background else 1.0
+
+    def frame(c2w, intrinsics, width, height):
+        return trainer.render_image(c2w, intrinsics, width, height, background=background)
+
+    return render_path_video(frame, path, out, depth=depth, show_progress=not quiet)
+
+
 def add_path_arguments(parser: argparse.ArgumentParser, positive_int, positive_float) -> None:
     """``--path``, ``--frames``, ``--fps`` and ``--depth-video`` for ``ngp-warp render``
     (``positive_int``/``positive_float``: the CLI's argparse types)."""

@@ -247,21 +247,15 @@ def add_view_parser(subparsers, positive_int):
 def load_target(args, device: str):
     """(trainer, live) for ``args.target``: a run folder's checkpoint, or a scene to train live."""
     from ngp_warp.checkpoint import load_trainer
-    from ngp_warp.cli import CHECKPOINT, UserError, _train_config
+    from ngp_warp.cli import CHECKPOINT, UserError, _train_config, new_trainer
     from ngp_warp.data import load_scene
-    from ngp_warp.trainer import Trainer
 
     target = Path(args.target)
     if (target / CHECKPOINT).is_file():
         return load_trainer(target / CHECKPOINT, device=device, scene_path=args.scene)[0], False
     if not target.exists():
         raise UserError(f"{target}: no such run or scene folder")
-    config = _train_config(args, device)
-    scene = load_scene(target, downscale=args.downscale)
-    try:  # its ValueErrors name a setting that does not suit this scene
-        return Trainer(scene, config, device=device), True
-    except ValueError as e:
-        raise UserError(f"--set: {e}") from None
+    return new_trainer(load_scene(target, downscale=args.downscale), _train_config(args, device), device), True
 
 
 def cmd_view(args) -> None:
