@@ -2,7 +2,9 @@
 
 Samples of ray r are ``offsets[r] .. offsets[r+1]`` (sorted by ray, front to back). Midpoints
 are taken relative to the ray's first one (the loss only sees their differences), which keeps
-float32 prefix sums from cancelling at camera distances.
+float32 prefix sums from cancelling at camera distances. With ``near`` > 0 every distance t is
+first mapped to mip-NeRF 360's normalised distance s = 1 − near/t (inverse depth: near → 0,
+infinity → 1), so that weight near the camera counts for more than weight far behind it.
 """
 
 import warp as wp
@@ -10,7 +12,16 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
-# m_i = (t_start_i + t_end_i)/2 − m_first, δ_i = t_end_i − t_start_i, with prefix sums
+@wp.func
+def spacing(t: float, near: float):
+    """t itself (near ≤ 0), or s = 1 − near/t."""
+    if near > 0.0:
+        return 1.0 - near / wp.max(t, near)
+    return t
+
+
+# In the spacing u = t or u = s(t): u_start_i, u_end_i of each sample, and
+# m_i = (u_start_i + u_end_i)/2 − m_first, δ_i = u_end_i − u_start_i, with prefix sums
 # W_<i = Σ_{j<i} w_j and M_<i = Σ_{j<i} w_j m_j:
 #   L_r = Σ_{i,j} w_i w_j |m_i − m_j| + 1/3 Σ_i w_i² δ_i = Σ_i w_i (2 (m_i W_<i − M_<i) + w_i δ_i / 3)
 @wp.kernel
@@ -20,6 +31,7 @@ def distortion_forward(
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
     offsets: wp.array(dtype=wp.int32),
+    near: float,
     loss: wp.array(dtype=float),
 ):
     r = first + wp.tid()
@@ -30,11 +42,13 @@ def distortion_forward(
     wm_before = float(0.0)
     m_first = float(0.0)
     if start < end:
-        m_first = 0.5 * (t_starts[start] + t_ends[start])
+        m_first = 0.5 * (spacing(t_starts[start], near) + spacing(t_ends[start], near))
     for i in range(start, end):
         w = weights[i]
-        m = 0.5 * (t_starts[i] + t_ends[i]) - m_first
-        total += w * (2.0 * (m * w_before - wm_before) + w * (t_ends[i] - t_starts[i]) / 3.0)
+        u0 = spacing(t_starts[i], near)
+        u1 = spacing(t_ends[i], near)
+        m = 0.5 * (u0 + u1) - m_first
+        total += w * (2.0 * (m * w_before - wm_before) + w * (u1 - u0) / 3.0)
         w_before += w
         wm_before += w * m
     loss[r] = total
@@ -50,6 +64,7 @@ def distortion_backward(
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
     offsets: wp.array(dtype=wp.int32),
+    near: float,
     grad_loss: wp.array(dtype=float),
     grad_weights: wp.array(dtype=float),
 ):
@@ -59,20 +74,22 @@ def distortion_backward(
     if start >= end:
         return
     g = grad_loss[r]
-    m_first = 0.5 * (t_starts[start] + t_ends[start])
+    m_first = 0.5 * (spacing(t_starts[start], near) + spacing(t_ends[start], near))
     w_total = float(0.0)
     wm_total = float(0.0)
     for i in range(start, end):
         w_total += weights[i]
-        wm_total += weights[i] * (0.5 * (t_starts[i] + t_ends[i]) - m_first)
+        wm_total += weights[i] * (0.5 * (spacing(t_starts[i], near) + spacing(t_ends[i], near)) - m_first)
     w_before = float(0.0)
     wm_before = float(0.0)
     for i in range(start, end):
         w = weights[i]
-        m = 0.5 * (t_starts[i] + t_ends[i]) - m_first
+        u0 = spacing(t_starts[i], near)
+        u1 = spacing(t_ends[i], near)
+        m = 0.5 * (u0 + u1) - m_first
         w_after = w_total - w_before - w
         wm_after = wm_total - wm_before - w * m
         d = 2.0 * (m * w_before - wm_before) + 2.0 * (wm_after - m * w_after)
-        grad_weights[i] = g * (d + 2.0 / 3.0 * w * (t_ends[i] - t_starts[i]))
+        grad_weights[i] = g * (d + 2.0 / 3.0 * w * (u1 - u0))
         w_before += w
         wm_before += w * m

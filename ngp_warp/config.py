@@ -52,6 +52,8 @@ class TrainConfig:
                                         # renders average the same grid; None: 2 on CUDA, 1 on the CPU
     distortion_weight: float | None = None  # weight of the mean distortion loss per ray (t in world units);
                                         # None: per scene (1e-4 on bounded captures, else 0)
+    distortion_spacing: str = "world"   # the loss's distances: "world" (t) or "normalised"
+                                        # (mip-NeRF 360's s = 1 − near/t, near the camera counts more)
     near_gradient_distance: float = 0.0  # > 0: σ and colour gradients scaled by min(1, (t / this)²),
                                         # t from the camera in world units (Floaters No More)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
@@ -62,7 +64,8 @@ class TrainConfig:
         """Raise ValueError naming the first setting outside its range (None is left to the
         device), the field's sizes included."""
         choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4),
-                   "contraction": ("auto", None, *CONTRACTIONS)}
+                   "contraction": ("auto", None, *CONTRACTIONS),
+                   "distortion_spacing": ("world", "normalised")}
         for name, allowed in choices.items():
             value = getattr(self, name)
             if value not in allowed or type(value) not in (str, int, type(None)):

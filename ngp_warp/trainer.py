@@ -167,7 +167,8 @@ class Trainer:
             out = phases.render(rays_o, rays_d)
             dist = None
             if cfg.distortion_weight > 0 and out["n_samples"] > 0:
-                dist = phases.distortion(out["weights"], out["t_starts"], out["t_ends"], out["ray_offsets"])
+                near = self.model.march.near if cfg.distortion_spacing == "normalised" else 0.0
+                dist = phases.distortion(out["weights"], out["t_starts"], out["t_ends"], out["ray_offsets"], near)
             # rays dropped for lack of room in the sample buffer (ray_mask) are left out
             # a pixel is the mean of its sub-rays, kept only if all of them are
             loss, mse = phases.loss(out["rgb"], out["opacity"], target, background, out.get("ray_mask"), dist,

@@ -35,23 +35,36 @@ def packed_samples(counts, n_padding=0, seed=0):
 COUNTS = [5, 0, 1, 17, 40, 3, 0, 64]
 
 
-def test_values_match_the_float64_twin():
+# near 3.6 maps t to s = 1 − 3.6/t, with some samples (t from 3.5) clamped to s = 0
+@pytest.mark.parametrize("near", [0.0, 3.6])
+def test_values_match_the_float64_twin(near):
     w, ts, te, rays, n = packed_samples(COUNTS)
-    ours = distortion_loss(w, ts, te, rays, n)
-    ref = distortion_ref.distortion_loss(w, ts, te, rays, n)
-    assert ref.abs().max() > 1e-3 and (ref[[1, 6]] == 0).all()
-    torch.testing.assert_close(ours.double(), ref, rtol=1e-4, atol=1e-7)
+    ours = distortion_loss(w, ts, te, rays, n, near=near)
+    ref = distortion_ref.distortion_loss(w, ts, te, rays, n, near=near)
+    assert ref.abs().max() > (1e-3 if near == 0 else 1e-5) and (ref[[1, 6]] == 0).all()
+    torch.testing.assert_close(ours.double(), ref, rtol=1e-4, atol=1e-7 if near == 0 else 1e-9)
 
 
-def test_gradients_match_the_float64_twin():
+@pytest.mark.parametrize("near", [0.0, 3.6])
+def test_gradients_match_the_float64_twin(near):
     w, ts, te, rays, n = packed_samples(COUNTS, seed=1)
     upstream = torch.randn(n)
     w1 = w.clone().requires_grad_(True)
-    (distortion_loss(w1, ts, te, rays, n) * upstream).sum().backward()
+    (distortion_loss(w1, ts, te, rays, n, near=near) * upstream).sum().backward()
     w2 = w.double().clone().requires_grad_(True)
-    (distortion_ref.distortion_loss(w2, ts, te, rays, n) * upstream.double()).sum().backward()
-    assert w2.grad.abs().max() > 1e-3
-    torch.testing.assert_close(w1.grad.double(), w2.grad, rtol=1e-4, atol=1e-6)
+    (distortion_ref.distortion_loss(w2, ts, te, rays, n, near=near) * upstream.double()).sum().backward()
+    assert w2.grad.abs().max() > (1e-3 if near == 0 else 1e-4)
+    torch.testing.assert_close(w1.grad.double(), w2.grad, rtol=1e-4, atol=1e-6 if near == 0 else 1e-8)
+
+
+def test_normalised_distance_weighs_spread_near_the_camera_more():
+    # two rays with the same world-space spread: weight at t = 1 and 2, or at t = 10 and 11
+    ts = torch.tensor([1.0, 2.0, 10.0, 11.0])
+    w, rays = torch.full((4,), 0.5), torch.tensor([0, 0, 1, 1])
+    world = distortion_loss(w, ts, ts + 0.01, rays, 2)
+    normalised = distortion_loss(w, ts, ts + 0.01, rays, 2, near=0.5)
+    torch.testing.assert_close(world[0], world[1])
+    assert normalised[0] > 20 * normalised[1]
 
 
 def test_padding_rows_are_ignored_and_get_no_gradient():
@@ -100,6 +113,8 @@ def test_trains_through_composite_to_the_densities():
     (dict(t_ends=torch.zeros(2)), "t_ends must be"),
     (dict(ray_indices=torch.zeros(3, dtype=torch.int32)), "ray_indices must be"),
     (dict(n_rays=-1), "n_rays"),
+    (dict(near=-1.0), "near must be"),
+    (dict(near=float("nan")), "near must be"),
 ])
 def test_rejects_bad_input(bad, match):
     args = dict(weights=torch.zeros(3), t_starts=torch.zeros(3), t_ends=torch.ones(3),
@@ -109,12 +124,13 @@ def test_rejects_bad_input(bad, match):
 
 
 @pytest.mark.cuda
-def test_cuda_matches_cpu():
+@pytest.mark.parametrize("near", [0.0, 3.6])
+def test_cuda_matches_cpu(near):
     w, ts, te, rays, n = packed_samples(COUNTS * 50, n_padding=5, seed=4)
     cpu_w = w.clone().requires_grad_(True)
     gpu_w = w.cuda().requires_grad_(True)
-    cpu = distortion_loss(cpu_w, ts, te, rays, n)
-    gpu = distortion_loss(gpu_w, ts.cuda(), te.cuda(), rays.cuda(), n)
+    cpu = distortion_loss(cpu_w, ts, te, rays, n, near=near)
+    gpu = distortion_loss(gpu_w, ts.cuda(), te.cuda(), rays.cuda(), n, near=near)
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-5, atol=1e-7)
     upstream = torch.randn(n)
     (cpu * upstream).sum().backward()
