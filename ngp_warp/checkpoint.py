@@ -89,8 +89,9 @@ def read_checkpoint(path: Path) -> dict:
 
 def _train_config(path: Path, saved: dict) -> TrainConfig:
     """The checkpoint's settings; CheckpointError for a setting this version does not have or
-    accept. Checkpoints from before sub-rays trained one ray per pixel."""
-    saved = {"supersample": 1, **saved}
+    accept. Checkpoints from before sub-rays trained one ray per pixel, and those from before
+    ``distortion_spacing`` took the distortion loss in world distances."""
+    saved = {"supersample": 1, "distortion_spacing": "world", **saved}
     try:
         config = TrainConfig(**{**saved, "field": FieldConfig(**saved["field"])})
         config.check()

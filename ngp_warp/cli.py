@@ -121,7 +121,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
           f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "
           f"level {trainer.config.field.finest_resolution:g} cells, table 2^{trainer.config.field.log2_hashmap_size} "
-          f"per level, distortion loss weight {trainer.config.distortion_weight:g}, "
+          f"per level, distortion loss weight {trainer.config.distortion_weight:g}"
+          f"{f' ({trainer.config.distortion_spacing})' if trainer.config.distortion_weight else ''}, "
           f"{trainer.config.supersample}x{trainer.config.supersample} rays per pixel", file=sys.stderr)
     if scene.test_is_heldout:
         print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",

@@ -50,10 +50,10 @@ class TrainConfig:
     supersample: int | None = None      # > 1: each training pixel is the mean of supersample² rays on
                                         # a sub-pixel grid (as the images were area-downsampled), and
                                         # renders average the same grid; None: 2 on CUDA, 1 on the CPU
-    distortion_weight: float | None = None  # weight of the mean distortion loss per ray (t in world units);
-                                        # None: per scene (1e-4 on bounded captures, else 0)
-    distortion_spacing: str = "world"   # the loss's distances: "world" (t) or "normalised"
-                                        # (mip-NeRF 360's s = 1 − near/t, near the camera counts more)
+    distortion_weight: float | None = None  # weight of the mean distortion loss per ray (distances as
+                                        # below); None: per scene (4e-3 on bounded captures, else 0)
+    distortion_spacing: str = "normalised"  # the loss's distances: mip-NeRF 360's s = 1 − near/t
+                                        # (near the camera counts more), or "world" (t)
     near_gradient_distance: float = 0.0  # > 0: σ and colour gradients scaled by min(1, (t / this)²),
                                         # t from the camera in world units (Floaters No More)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)

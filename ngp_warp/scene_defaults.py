@@ -16,11 +16,13 @@
   (28.21 → 27.7–28.0 dB, mean code), while lego at 0.05 stayed within 0.05 dB.
 * Appearance codes: 16 per training image for captures (exposure and white balance vary),
   none for NeRF-synthetic renders.
-* Distortion loss (mip-NeRF 360): weight 1e-4 on bounded captures, 0 elsewhere. On fox (H200,
-  60 s, session 15, RESULTS.md) it took the held-out PSNR from 30.28 (five seeds, same host and
-  day) to 31.04 dB (five seeds): it thins the semi-transparent floaters in front of the
-  surfaces that some held-out views see (7.6 → 2 % of view 0089's rays). 1e-3 cost 2.8 dB at
-  20 s (session 12). Not measured on contracted scenes, whose far samples span long intervals.
+* Distortion loss (mip-NeRF 360), in its normalised distance s = 1 − near/t: weight 4e-3 on
+  bounded captures, 0 elsewhere. On fox (H200, 60 s, RESULTS.md) the loss thins the
+  semi-transparent floaters in front of the training cameras that some held-out views see
+  (7.6 → 2 % of view 0089's rays): none 30.28 dB (five seeds), world-space 1e-4 31.09 (eight),
+  normalised 4e-3 31.27 (eight; session 16). World-space 5e-4 put more weight in front (29.45
+  over five). On the contracted unbounded scene world-space 1e-4 cost about 2.5 dB and
+  normalised 4e-3 neither cost nor gained (runs there differ by up to 5 dB), so it stays off.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ CONE_ANGLE = 1.0 / 256.0  # instant-ngp's cone angle for aabb_scale > 1
 SYNTHETIC_OCCUPANCY_THRESHOLD = 0.01  # instant-ngp's NERF_MIN_OPTICAL_THICKNESS
 CAPTURE_OCCUPANCY_THRESHOLD = 0.05
 APPEARANCE_DIM = 16
-CAPTURE_DISTORTION_WEIGHT = 1e-4
+CAPTURE_DISTORTION_WEIGHT = 4e-3  # with distortion_spacing 'normalised'
 _MIN_CAMERAS = 8  # fewer cameras never count as surrounding a centre
 _MAX_RESULTANT = 0.5  # |mean horizontal direction from the centre to the cameras|: 0 for a ring
 _MIN_INWARD = 0.8  # mean cosine between a camera's view axis and its direction to the centre

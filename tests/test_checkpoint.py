@@ -180,6 +180,17 @@ def test_checkpoint_from_before_sub_rays_loads_as_one_ray_per_pixel(tiny_scene, 
     assert loaded.config.supersample == 1
 
 
+def test_checkpoint_from_before_distortion_spacing_keeps_world_distances(tiny_scene, tmp_path):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
+    assert trainer.config.distortion_spacing == "normalised"
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    assert load_trainer(tmp_path / "c.pt", device="cpu")[0].config.distortion_spacing == "normalised"
+    state = torch.load(tmp_path / "c.pt", weights_only=False)
+    del state["train_config"]["distortion_spacing"]
+    torch.save(state, tmp_path / "c.pt")
+    assert load_trainer(tmp_path / "c.pt", device="cpu")[0].config.distortion_spacing == "world"
+
+
 def test_trainer_resolves_an_unset_finest_resolution_and_checkpoints_it(tiny_scene, tmp_path):
     cfg = tiny_config(2)
     cfg.field.finest_resolution = None

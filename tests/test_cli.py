@@ -30,7 +30,7 @@ def test_train_eval_render(scene, tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["train", str(scene), "--out", str(out), "--steps", "20", "--frames", "3",
                  "--set", "distortion_weight=0.01", *FAST]) == 0
-    assert "distortion loss weight 0.01, 1x1 rays per pixel" in capsys.readouterr().err
+    assert "distortion loss weight 0.01 (normalised), 1x1 rays per pixel" in capsys.readouterr().err
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr", "ssim", "train_seconds", "steps", "per_image"):
         assert key in metrics
@@ -120,6 +120,7 @@ def test_bad_settings_are_one_line_and_create_nothing(scene, tmp_path, capsys):
     assert "keeps the settings in its checkpoint" in one_line_error(capsys)
     for setting, message in [("supersample=7", "supersample must be one of"), ("loss=l1", "loss must be one of"),
                              ("lr=0", "lr must be a number > 0"), ("distortion_weight=-1", "distortion_weight must be a number ≥ 0"),
+                             ("distortion_spacing=metres", "distortion_spacing must be one of world, normalised"),
                              ("field.n_features_per_level=3", "n_features_per_level must be 1, 2, 4 or 8")]:
         assert main(["train", str(scene), "--out", str(out), "--device", "cpu", "--set", setting]) == 2
         assert message in one_line_error(capsys)

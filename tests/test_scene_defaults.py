@@ -59,9 +59,9 @@ def test_unbounded_scene_asks_for_contraction_and_gets_cone_steps(tmp_path):
     assert resolve_defaults(TrainConfig(), scene, "cpu").occupancy_threshold == 0.05
     assert resolve_defaults(TrainConfig(occupancy_threshold=0.2), scene, "cpu").occupancy_threshold == 0.2
     # the distortion loss on bounded captures only: not this contracted scene, unless asked
-    assert distortion_weight(scene, "l2") == 0.0 and distortion_weight(scene, None) == 1e-4
+    assert distortion_weight(scene, "l2") == 0.0 and distortion_weight(scene, None) == 4e-3
     assert resolve_defaults(TrainConfig(), scene, "cpu").distortion_weight == 0.0
-    assert resolve_defaults(TrainConfig(contraction=None), scene, "cpu").distortion_weight == 1e-4
+    assert resolve_defaults(TrainConfig(contraction=None), scene, "cpu").distortion_weight == 4e-3
     assert resolve_defaults(TrainConfig(distortion_weight=0.5), scene, "cpu").distortion_weight == 0.5
     with pytest.raises(ValueError, match="contraction must be"):
         choose_contraction("sphere", scene)
