@@ -97,6 +97,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     from ngp_warp.camera_path import around_cameras
     from ngp_warp.video_out import render_trainer_video
     from ngp_warp.evaluate import evaluate
+    from ngp_warp.refined_transforms import write_refined_transforms
 
     out = folder.path
     ckpt = out / CHECKPOINT
@@ -134,7 +135,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     _train(trainer, save, folder, args)
     save()
     if trainer.cameras is not None:
-        print(f"camera refinement: {trainer.cameras.summary()}", file=sys.stderr)
+        refined = write_refined_transforms(trainer, scene_path, downscale, out)
+        print(f"camera refinement: {trainer.cameras.summary()}; refined poses: {refined}", file=sys.stderr)
     metrics = evaluate(trainer, out, show_progress=not args.quiet)
     if not args.no_video:
         train = scene.train

@@ -286,7 +286,7 @@ def _colmap_sparse(folder: Path) -> Path | None:
     return None
 
 
-def _sources(path: Path, downscale: int) -> tuple[list[tuple[dict, Path, Path]], str, int]:
+def scene_sources(path: Path, downscale: int) -> tuple[list[tuple[dict, Path, Path]], str, int]:
     """([(meta, source for messages, image base)] for train (and test), kind, downscale left to apply)."""
     if path.is_file():
         return [(read_json(path), path, path.parent)], "json", downscale
@@ -336,7 +336,7 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
         raise DataError(f"downscale must be a positive integer, got {short(downscale)}")
     if isinstance(holdout_every, bool) or not isinstance(holdout_every, int) or holdout_every < 2:
         raise DataError(f"holdout_every must be an integer of at least 2, got {short(holdout_every)}")
-    sources, kind, downscale = _sources(path, downscale)
+    sources, kind, downscale = scene_sources(path, downscale)
     metas = [meta for meta, _, _ in sources]
     train = read_frames(*sources[0])
     if len(sources) > 1:

@@ -97,7 +97,7 @@ def _check_rigid(c2w: np.ndarray, where: str) -> None:
                         f"lengths {norms} and must be orthonormal)")
 
 
-def _image_path(base: Path, file_path, where: str) -> Path:
+def image_path(base: Path, file_path, where: str) -> Path:
     """The image file of ``file_path`` (extension optional), or the path tried when there is none."""
     if not isinstance(file_path, str) or not file_path:
         raise DataError(f"{where}: file_path must be a non-empty string, got {short(file_path)}")
@@ -132,7 +132,7 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
                 raise DataError(f"{where}: missing {key}")
         c2w = _matrix(frame["transform_matrix"], where)[:3]
         _check_rigid(c2w, where)
-        image = _image_path(base, frame["file_path"], where)
+        image = image_path(base, frame["file_path"], where)
         if image.is_file():
             out.append(Frame(where, image, c2w, [top, _camera_keys(frame)]))
         else:

@@ -7,6 +7,7 @@ import torch
 
 from ngp_warp import _wp
 from ngp_warp.cli import main
+from ngp_warp.data import load_scene
 from ngp_warp.scene import write_demo_scene
 
 FAST = ["--device", "cpu", "--quiet", "--target-samples", "4096"]
@@ -139,6 +140,9 @@ def test_camera_refinement_reports_its_corrections_and_refuses_contracted_scenes
                  "--set", "field.appearance_dim=4", *FAST]) == 0
     captured = capsys.readouterr()
     assert "camera refinement: rotations" in captured.err
+    assert f"refined poses: {out / 'transforms_refined.json'}" in captured.err
+    refined = load_scene(out / "transforms_refined.json")  # trains like the scene, on the refined poses
+    assert sorted(refined.train.names + refined.test.names) == sorted(load_scene(scene).train.names)
     assert "each view's appearance code and pose fitted on its left half" in captured.out
     assert main(["train", str(scene), "--out", str(tmp_path / "contracted"), "--steps", "10", "--no-video",
                  "--set", "camera_refinement=true", "--set", "contraction=l2", *FAST]) == 2
