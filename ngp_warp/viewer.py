@@ -102,6 +102,7 @@ class Viewer:
         self.clients: dict[int, ClientView] = {}
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.stats = {"step": trainer.step_count, "loss": float("nan"), "psnr": float("nan")}
+        self.frustums = []  # viser handles of the training cameras shown
         self._add_gui()
         self._add_cameras()
         self.server.on_client_connect(self._connect)
@@ -124,21 +125,23 @@ class Viewer:
         self.status = gui.add_markdown(self._status_text())
 
     def _add_cameras(self) -> None:
-        split = self.trainer.scene.train
-        extent = float((split.c2w[:, :, 3] - split.c2w[:, :, 3].mean(0)).norm(dim=-1).median())
+        split, cameras = self.trainer.scene.train, self.trainer.cameras
+        # a run with camera refinement shows its refined poses
+        c2w = split.c2w if cameras is None else cameras.refined_c2w(split.c2w).cpu()
+        extent = float((c2w[:, :, 3] - c2w[:, :, 3].mean(0)).norm(dim=-1).median())
         every = max(1, math.ceil(len(split) / MAX_FRUSTUMS))
         for i in range(0, len(split), every):
-            wxyz, position = viser_from_c2w(split.c2w[i])
+            wxyz, position = viser_from_c2w(c2w[i])
             fov = 2 * math.atan(0.5 * split.height / float(split.intrinsics[i, 1]))
-            self.server.scene.add_camera_frustum(f"/train/{i}", fov=fov, aspect=split.width / split.height,
-                                                 scale=0.03 * max(extent, 1e-3), wxyz=wxyz, position=position,
-                                                 color=(40, 110, 220))
-        up = split.c2w[:, :3, 1].mean(0)
+            self.frustums.append(self.server.scene.add_camera_frustum(
+                f"/train/{i}", fov=fov, aspect=split.width / split.height, scale=0.03 * max(extent, 1e-3),
+                wxyz=wxyz, position=position, color=(40, 110, 220)))
+        up = c2w[:, :3, 1].mean(0)
         up = up / up.norm().clamp_min(1e-9)
         self.server.scene.set_up_direction(tuple(up.tolist()))
         centre = (self.trainer.scene.aabb[:3] + self.trainer.scene.aabb[3:]) / 2
         # behind and above the first training camera, its frustum out of the middle of the view
-        offset = split.c2w[0, :, 3] - centre
+        offset = c2w[0, :, 3] - centre
         self.server.initial_camera.position = tuple((centre + 1.3 * offset + 0.3 * offset.norm() * up).tolist())
         self.server.initial_camera.look_at = tuple(centre.tolist())
         self.server.initial_camera.fov = 2 * math.atan(0.5 * split.height / float(split.intrinsics[0, 1]))

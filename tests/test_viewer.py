@@ -70,6 +70,25 @@ def test_live_training_steps_until_paused(scene_dir):
         viewer.close()
 
 
+def test_a_refined_run_shows_its_refined_cameras(scene_dir):
+    trainer = Trainer(load_scene(scene_dir), TrainConfig(**{**vars(tiny_config(1)), "camera_refinement": True}),
+                      device="cpu")
+    with torch.no_grad():
+        trainer.cameras.omega[0] = torch.tensor([0.1, -0.05, 0.02])
+        trainer.cameras.tau[0] = torch.tensor([0.02, 0.0, -0.03])
+    viewer = Viewer(trainer, "127.0.0.1", 0, resolution=32, moving_resolution=16, live=False)
+    try:
+        wxyz, position = viser_from_c2w(trainer.cameras.refined_c2w(trainer.scene.train.c2w)[0])
+        np.testing.assert_allclose(viewer.frustums[0].wxyz, wxyz, atol=1e-6)
+        np.testing.assert_allclose(viewer.frustums[0].position, position, atol=1e-6)
+        original = viser_from_c2w(trainer.scene.train.c2w[0])
+        assert np.abs(viewer.frustums[0].position - original[1]).max() > 0.02
+        assert not np.allclose(viewer.frustums[0].wxyz, original[0], atol=1e-2)
+        np.testing.assert_allclose(viewer.frustums[1].wxyz, viser_from_c2w(trainer.scene.train.c2w[1])[0], atol=1e-6)
+    finally:
+        viewer.close()
+
+
 def test_a_scene_folder_is_trained_live(scene_dir):
     args = Namespace(target=str(scene_dir), scene=None, steps=7, seconds=None, seed=0, target_samples=4096,
                      set=["grid_resolution=32"], downscale=2)
