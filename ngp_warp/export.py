@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -290,10 +290,13 @@ def _output(out_dir: Path, name: str, flag: str) -> Path:
 
 def training_points(trainer, max_points: int, world_from_scene=None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Points [M, 3] float32 and colours [M, 3] uint8 from every training view rendered by
-    ``trainer`` (:func:`point_cloud` of its rays), at most ``max_points`` drawn uniformly."""
+    ``trainer`` (:func:`point_cloud` of its rays; a run with camera refinement renders each
+    view from its refined pose), at most ``max_points`` drawn uniformly."""
     from ngp_warp.data import image_rays
 
     split = trainer.scene.train.to(trainer.device)
+    if trainer.cameras is not None:
+        split = replace(split, c2w=trainer.cameras.refined_c2w(split.c2w))
     points, colors = [], []
     for i in range(len(split)):
         out = trainer.render_image(**split.camera(i))

@@ -212,3 +212,35 @@ def test_trained_demo_mesh_lies_on_the_analytic_surface(tmp_path):
                             resolution=128, grid=trainer.grid, world_from_scene=scene.world_from_scene)
     assert scene_sdf(mesh.vertices.double()).abs().mean() < 0.01 * DIAGONAL
     assert nearest_distance(surface_samples(1000), mesh.vertices).mean() < 0.01 * DIAGONAL
+
+
+def test_training_points_of_a_refined_run_come_from_its_refined_poses(tmp_path):
+    """The field of a run with camera refinement was fitted through the refined rays, so its
+    training points are those of the same field seen from the refined cameras."""
+    from dataclasses import replace
+
+    from ngp_warp.config import TrainConfig
+    from ngp_warp.data import load_scene
+    from ngp_warp.export import training_points
+    from ngp_warp.field import FieldConfig
+    from ngp_warp.scene import write_demo_scene
+    from ngp_warp.trainer import Trainer
+
+    scene = load_scene(write_demo_scene(tmp_path / "scene", width=24, height=24, n_train=6, n_test=1, supersample=1))
+    config = TrainConfig(steps=60, target_samples=1 << 13, grid_resolution=32, steps_per_diagonal=256,
+                         camera_refinement=True, field=FieldConfig(n_levels=8, log2_hashmap_size=14, hidden=32))
+    trainer = Trainer(scene, config, device="cpu")
+    trainer.train(show_progress=False)
+    with torch.no_grad():
+        trainer.cameras.omega.copy_((torch.rand(6, 3, generator=torch.Generator().manual_seed(0)) - 0.5) * 0.2)
+    points, colors = training_points(trainer, 10**9)
+    assert points.shape[0] > 500
+
+    refined = trainer.cameras.refined_c2w(scene.train.c2w).cpu()
+    trainer.cameras = None  # the same field, the poses given instead
+    trainer.scene = replace(scene, train=replace(scene.train, c2w=refined))
+    expected = training_points(trainer, 10**9)
+    assert torch.equal(points, expected[0]) and torch.equal(colors, expected[1])
+    trainer.scene = scene
+    original = training_points(trainer, 10**9)[0]  # from the poses as given: elsewhere
+    assert original.shape != points.shape or not torch.equal(original, points)
