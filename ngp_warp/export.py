@@ -294,9 +294,7 @@ def training_points(trainer, max_points: int, world_from_scene=None, seed: int =
     view from its refined pose), at most ``max_points`` drawn uniformly."""
     from ngp_warp.data import image_rays
 
-    split = trainer.scene.train.to(trainer.device)
-    if trainer.cameras is not None:
-        split = replace(split, c2w=trainer.cameras.refined_c2w(split.c2w))
+    split = replace(trainer.scene.train.to(trainer.device), c2w=trainer.training_c2w())
     points, colors = [], []
     for i in range(len(split)):
         out = trainer.render_image(**split.camera(i))

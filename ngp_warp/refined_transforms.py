@@ -56,8 +56,7 @@ def refined_transforms(scene_path: str | Path, downscale: int, image_names: list
 def write_refined_transforms(trainer, scene_path: str | Path, downscale: int, out_dir: str | Path) -> Path:
     """Write :func:`refined_transforms` of ``trainer``'s training split (a Trainer with camera
     refinement) to ``out_dir/transforms_refined.json`` atomically; returns its path."""
-    split = trainer.train_split
-    meta = refined_transforms(scene_path, downscale, split.names, trainer.cameras.refined_c2w(split.c2w))
+    meta = refined_transforms(scene_path, downscale, trainer.train_split.names, trainer.training_c2w())
     path = Path(out_dir) / REFINED_TRANSFORMS
     atomic_write_text(path, json.dumps(meta, indent=2) + "\n")
     return path

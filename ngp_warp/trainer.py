@@ -245,6 +245,12 @@ class Trainer:
         self.flush()
 
     # -- inference -------------------------------------------------------------------------
+    def training_c2w(self) -> torch.Tensor:
+        """[N, 3, 4] float32 camera-to-world matrices of the training images as the field was
+        fitted through them, on the trainer's device: with camera refinement the refined ones."""
+        c2w = self.train_split.c2w
+        return c2w if self.cameras is None else self.cameras.refined_c2w(c2w)
+
     def render_image(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                      distortion: torch.Tensor | None = None, background: float = 1.0, chunk: int | None = None,
                      spp: int = 1, fisheye: bool = False, supersample: int | None = None,

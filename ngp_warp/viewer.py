@@ -125,9 +125,8 @@ class Viewer:
         self.status = gui.add_markdown(self._status_text())
 
     def _add_cameras(self) -> None:
-        split, cameras = self.trainer.scene.train, self.trainer.cameras
-        # a run with camera refinement shows its refined poses
-        c2w = split.c2w if cameras is None else cameras.refined_c2w(split.c2w).cpu()
+        split = self.trainer.scene.train
+        c2w = self.trainer.training_c2w().cpu()  # a run with camera refinement shows its refined poses
         extent = float((c2w[:, :, 3] - c2w[:, :, 3].mean(0)).norm(dim=-1).median())
         every = max(1, math.ceil(len(split) / MAX_FRUSTUMS))
         for i in range(0, len(split), every):

@@ -236,11 +236,12 @@ def test_training_points_of_a_refined_run_come_from_its_refined_poses(tmp_path):
     points, colors = training_points(trainer, 10**9)
     assert points.shape[0] > 500
 
-    refined = trainer.cameras.refined_c2w(scene.train.c2w).cpu()
+    refined, given = trainer.cameras.refined_c2w(scene.train.c2w).cpu(), trainer.train_split
     trainer.cameras = None  # the same field, the poses given instead
     trainer.scene = replace(scene, train=replace(scene.train, c2w=refined))
+    trainer.train_split = replace(given, c2w=refined)
     expected = training_points(trainer, 10**9)
     assert torch.equal(points, expected[0]) and torch.equal(colors, expected[1])
-    trainer.scene = scene
+    trainer.scene, trainer.train_split = scene, given
     original = training_points(trainer, 10**9)[0]  # from the poses as given: elsewhere
     assert original.shape != points.shape or not torch.equal(original, points)
