@@ -75,7 +75,7 @@ def main() -> None:
     if args.train_every < 1:
         ap.error(f"--train-every must be ≥ 1, got {args.train_every}")
     trainer = trainer_or_usage_error(ap, args.run, args.device, need_codes=True)
-    background = 0.0 if trainer.black_background else 1.0
+    background = trainer.view_background
     scene = trainer.scene
     held_out = [view_errors(trainer, scene.test, i, background) for i in range(len(scene.test.names))]
     trained = [view_errors(trainer, scene.train, i, background)[0]

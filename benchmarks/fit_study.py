@@ -60,7 +60,7 @@ def main() -> None:
         ap.error(f"--fit takes ITERATIONS:LR:SEED[:pose], got {' '.join(args.fit)}")
     trainer = trainer_or_usage_error(ap, args.run, args.device, need_codes=True)
     split, white = trainer.scene.test, torch.ones(3, device=trainer.device)
-    background = 0.0 if trainer.black_background else 1.0
+    background = trainer.view_background
     rows = []
     for i, name in enumerate(split.names):
         camera = split.camera(i)

@@ -205,6 +205,13 @@ def render_rays(first: int, origins: wp.array(dtype=wp.vec3), directions: wp.arr
     depth[i] = t
 
 
+@wp.kernel
+def environment_rays(first: int, directions: wp.array(dtype=wp.vec3), rgb: wp.array(dtype=wp.vec3)):
+    """rgb[i] = environment(d_i / |d_i|): the colour at infinity, with nothing in the way."""
+    i = first + wp.tid()
+    rgb[i] = environment(wp.normalize(directions[i]))
+
+
 # Pixel (px, py) of view v, sample (sx, sy):  u = px + (sx + 1/2)/ss,  w = py + (sy + 1/2)/ss,
 # d = normalize(R ((u - cx)/fx, -(w - cy)/fy, -1)).  out = mean over the ss^2 samples of the colour.
 @wp.kernel

@@ -94,7 +94,7 @@ def _field_with_code_and_positions(field: NGPField, code: torch.Tensor):
 
 def fit_appearance_and_pose(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                             image: torch.Tensor, distortion: torch.Tensor | None = None, fisheye: bool = False,
-                            background: float = 1.0, iterations: int = FIT_ITERATIONS,
+                            background: float | None = 1.0, iterations: int = FIT_ITERATIONS,
                             rays_per_iteration: int | None = None, lr: float = FIT_LR,
                             seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`fit_appearance_code` that also fits the view's pose: a rotation about its camera
@@ -112,7 +112,7 @@ def fit_appearance_and_pose(trainer: Trainer, c2w: torch.Tensor, intrinsics: tor
 
 def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                         image: torch.Tensor, distortion: torch.Tensor | None = None, fisheye: bool = False,
-                        background: float = 1.0, iterations: int = FIT_ITERATIONS,
+                        background: float | None = 1.0, iterations: int = FIT_ITERATIONS,
                         rays_per_iteration: int | None = None, lr: float = FIT_LR,
                         seed: int = 0) -> torch.Tensor:
     """The appearance code that best renders the left half of ``image`` (the math in the module
@@ -144,7 +144,8 @@ def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.T
         image: [height, width, 3] float32 in [0, 1], composited as the evaluation scores it
             (over ``background``), on any device.
         distortion: optional [6] float32 k1 k2 k3 k4 p1 p2; ``fisheye``: OpenCV's fisheye lens.
-        background: the colour (float) behind the field, as the view is rendered.
+        background: the colour (float) behind the field, as the view is rendered; None: the
+            field's learned environment.
         iterations, rays_per_iteration, lr: Adam's iterations, batch (None: by the device,
             :data:`FIT_RAYS_PER_ITERATION`) and learning rate.
         seed: the pixels' random generator (the fit is deterministic given it).
@@ -160,7 +161,7 @@ def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.T
 
 
 def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, distortion, fisheye: bool,
-         background: float, iterations: int, rays_per_iteration: int | None, lr: float, seed: int,
+         background: float | None, iterations: int, rays_per_iteration: int | None, lr: float, seed: int,
          pose: CameraRefinement | None) -> torch.Tensor:
     """The fit of :func:`fit_appearance_code`, and of ``pose`` (in place) when given."""
     dev, field = trainer.device, trainer.field
@@ -184,7 +185,8 @@ def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, dist
             if pose is not None:
                 rays_o, rays_d = pose.rays(pose_index, rays_o, rays_d)
             with trainer.model.precision():
-                out = trainer.model.render(rays_o, rays_d, field_fn, background=background,
+                bg = field.background(rays_d).detach() if background is None else background
+                out = trainer.model.render(rays_o, rays_d, field_fn, background=bg,
                                            sigma_fn=field.density)
             if out["n_samples"] == 0:  # nothing along these rays: the code changes nothing
                 continue

@@ -89,11 +89,12 @@ def read_checkpoint(path: Path) -> dict:
 
 def _train_config(path: Path, saved: dict) -> TrainConfig:
     """The checkpoint's settings; CheckpointError for a setting this version does not have or
-    accept. Checkpoints from before sub-rays trained one ray per pixel, and those from before
-    ``distortion_spacing`` took the distortion loss in world distances."""
+    accept. Checkpoints without sub-rays trained one ray per pixel, those without
+    ``distortion_spacing`` took the distortion loss in world distances, and those without
+    ``field.environment`` had no learned environment."""
     saved = {"supersample": 1, "distortion_spacing": "world", **saved}
     try:
-        config = TrainConfig(**{**saved, "field": FieldConfig(**saved["field"])})
+        config = TrainConfig(**{**saved, "field": FieldConfig(**{"environment": False, **saved["field"]})})
         config.check()
     except TypeError as e:  # a setting this version does not have
         raise CheckpointError(f"{path}: written by another ngp-warp version ({e})") from None

@@ -232,6 +232,8 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     field_config = config.field
     if field_config.appearance_dim is None:
         field_config = dataclasses.replace(field_config, appearance_dim=appearance_dim(scene))
+    if field_config.environment is None:  # contracted fields learn the colour at infinity
+        field_config = dataclasses.replace(field_config, environment=kind is not None)
     if field_config.finest_resolution is None:
         finest = pixel_matched_resolution(scene, config.supersample, kind)
         field_config = dataclasses.replace(field_config, finest_resolution=finest)

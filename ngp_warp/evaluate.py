@@ -48,7 +48,8 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th view of
     ``split`` (default: the test split), rendered (``spp`` as in ``Trainer.render_image``) and
     composited on white; where the field learns the background (``Trainer.black_background``:
-    unbounded scenes, opaque images) the renders are composited on black. With appearance codes
+    contracted scenes, opaque images) over its learned environment (black for a field without
+    one: ``Trainer.view_background``). With appearance codes
     every view is rendered with the mean code of the training images, or, with
     ``fit_appearance``, with the code fitted on the left half of its ground truth
     (:func:`~ngp_warp.appearance_fit.fit_appearance_code`, in the render dict as
@@ -58,7 +59,7 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     view's pose as well (:func:`~ngp_warp.appearance_fit.fit_appearance_and_pose`)."""
     split = trainer.scene.test if split is None else split
     white = torch.ones(3, device=trainer.device)
-    background = 0.0 if trainer.black_background else 1.0
+    background = trainer.view_background
     fit = fit_appearance and trainer.field.appearance is not None
     for i in range(0, len(split.names), every):
         camera = split.camera(i)
@@ -121,6 +122,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
         **lpips_summary([m["lpips"] for m in per_image], lpips_note),
         "train_seconds": trainer.train_seconds,
         "steps": trainer.step_count,
+        "train_samples_per_ray": trainer.target_samples / trainer.rays.n_rays,
         "device": str(trainer.device),
         "test_split": "held-out training frames" if trainer.scene.test_is_heldout else "test",
         "n_test_images": len(per_image),

@@ -57,12 +57,17 @@ class FieldConfig:
     appearance_dim: int | None = None  # per-image appearance code size A (0: none); None: the
                                        # Trainer picks per scene (16 for captures, 0 for
                                        # NeRF-synthetic; scene_defaults.appearance_dim); NGPField alone: 0
+    environment: bool | None = None    # a learned colour at infinity per view direction (the
+                                       # background); None: the Trainer's (on for contracted
+                                       # fields, scene_defaults); NGPField alone: off
 
     def check(self) -> None:
         """Raise ValueError naming the first size outside its range (a None finest resolution or
         appearance code size is left to the Trainer)."""
         if self.appearance_dim is not None and (type(self.appearance_dim) is not int or self.appearance_dim < 0):
             raise ValueError(f"appearance_dim must be a non-negative int or None, got {self.appearance_dim!r}")
+        if self.environment not in (None, True, False):
+            raise ValueError(f"environment must be true, false or None, got {self.environment!r}")
         check_numbers(self, counts=("n_levels", "base_resolution", "hidden", "geo_features", "log2_hashmap_size"),
                       positive=("finest_resolution",), optional=("finest_resolution",))
         if self.n_features_per_level not in (1, 2, 4, 8) or type(self.n_features_per_level) is not int:
@@ -198,11 +203,27 @@ class NGPField(nn.Module):
         if codes > 0:
             self.appearance = nn.Embedding(n_images, codes)
             nn.init.normal_(self.appearance.weight, std=0.01)
+        self.environment = None  # colour at infinity: sigmoid(W SH_4(d) + b), smooth by construction
+        if cfg.environment:
+            self.environment = nn.Linear(16, 3)
+            nn.init.zeros_(self.environment.weight)
+            nn.init.zeros_(self.environment.bias)
 
     def mlp_parameters(self) -> list[nn.Parameter]:
-        """MLP weights and appearance codes (the ones that get weight decay)."""
+        """MLP weights, appearance codes and the environment (the ones that get weight decay)."""
         codes = [] if self.appearance is None else list(self.appearance.parameters())
-        return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters()) + codes
+        environment = [] if self.environment is None else list(self.environment.parameters())
+        return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters()) + codes + environment
+
+    def background(self, directions: torch.Tensor) -> torch.Tensor:
+        """The learned environment's colour [N, 3] float32 in (0, 1) along unit ``directions``
+        [N, 3] float32: sigmoid(W SH_4(d) + b), degree-4 spherical harmonics (16 values), so it
+        can hold a sky or a backdrop's colour, not a picture of the training views. Differentiable
+        in W and b, in float32 under autocast too. Needs ``config.environment``."""
+        if self.environment is None:
+            raise ValueError("this field has no learned environment (FieldConfig.environment is off)")
+        with torch.autocast(directions.device.type, enabled=False):
+            return torch.sigmoid(self.environment(spherical_harmonics_deg4(directions)))
 
     def _grid_points(self, positions: torch.Tensor) -> torch.Tensor:
         """World positions [N, 3] → the hash grid's coordinates [N, 3] float32: themselves, or C(x)."""

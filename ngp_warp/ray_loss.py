@@ -44,7 +44,10 @@ class _RayLoss(torch.autograd.Function):
                     ctx.delta, ctx.extra_weight, sums, grad_loss.float().reshape(1), grad_rgb, grad_opacity,
                     grad_extra],
                    _wp.device_of(rgb))
-        return grad_rgb, grad_opacity, None, None, None, grad_extra, None, None, None
+        grad_background = None
+        if ctx.needs_input_grad[3]:  # c_p = mean_k(c_r + (1 - a_r) b_p): dL/db_p = sum_k (1 - a_r) dL/dc_r
+            grad_background = ((1.0 - opacity)[:, None] * grad_rgb).view(-1, ctx.k, 3).sum(1)
+        return grad_rgb, grad_opacity, None, grad_background, None, grad_extra, None, None, None
 
 
 def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, background: torch.Tensor,
@@ -74,7 +77,8 @@ def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, bac
         opacity: [N] float32 :math:`O_r` (differentiable).
         target: [N / K, 3] float32 pixel colours :math:`\\hat c_p`, already over ``background``
             (no gradient).
-        background: [N / K, 3] float32 per-pixel background :math:`b_p` (no gradient).
+        background: [N / K, 3] float32 per-pixel background :math:`b_p` (differentiable: a
+            learned background, e.g. :meth:`ngp_warp.field.NGPField.background`).
         ray_mask: optional [N] bool :math:`m_r` (e.g. ``render_rays``'s ``ray_mask``); None: all.
         extra: optional [N] float32 per-ray term :math:`x_r` (differentiable), e.g. the
             :func:`ngp_warp.distortion.distortion_loss_packed` of the rays, weighted by
@@ -102,9 +106,8 @@ def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, bac
         if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape or t.dtype != dtype or t.device != dev:
             raise ValueError(f"{name} must be {list(shape)} {dtype} on {dev}, got "
                              f"{getattr(t, 'shape', type(t).__name__)} {getattr(t, 'dtype', '')}".rstrip())
-    for name, t in (("target", target), ("background", background)):
-        if t.requires_grad:
-            raise ValueError(f"ray_loss gives {name} no gradient; pass it detached (or use a torch loss)")
+    if target.requires_grad:
+        raise ValueError("ray_loss gives target no gradient; pass it detached (or use a torch loss)")
     if huber_delta is not None and not (isinstance(huber_delta, (int, float)) and huber_delta > 0):
         raise ValueError(f"huber_delta must be a number > 0 or None, got {huber_delta!r}")
     if not (isinstance(extra_weight, (int, float)) and extra_weight >= 0):

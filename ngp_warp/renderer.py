@@ -160,7 +160,7 @@ def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
 def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor,
                   stratified: bool, appearance_code: torch.Tensor | None, first_round: int | None) -> dict:
     """One chunk of N rays (see the module): march, σ and h of the marched samples (:func:`_geometry`),
-    prune, the colour MLP on the kept samples' h, composite over ``bg`` [3].
+    prune, the colour MLP on the kept samples' h, composite over ``bg`` [3] or [N, 3].
 
     Returns ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] float32 and host ints
     ``n_marched``, ``n_encoded`` (through the density MLP), ``n_shaded`` (through the colour MLP).
@@ -188,7 +188,7 @@ def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tens
 
 @torch.inference_mode()
 def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, *,
-                distortion: torch.Tensor | None = None, fisheye: bool = False, background: float = 1.0,
+                distortion: torch.Tensor | None = None, fisheye: bool = False, background: float | None = 1.0,
                 chunk: int | None = None, spp: int = 1, supersample: int = 1,
                 appearance_code: torch.Tensor | None = None, first_round: int | str | None = "auto") -> dict:
     """Render one camera with the model's field in eval mode.
@@ -204,7 +204,8 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
         width, height: image size in pixels.
         distortion: [6] float32 k1, k2, k3, k4, p1, p2 (OpenCV), or None for a pinhole.
         fisheye: the lens is OpenCV's fisheye (``distortion`` required).
-        background: grey level blended behind the samples.
+        background: grey level blended behind the samples; None: the field's learned
+            environment along each ray (:meth:`ngp_warp.field.NGPField.background`).
         chunk: rays per chunk; None sizes chunks to the device's memory (:class:`ChunkSizer`).
             The image does not depend on it.
         appearance_code: [A] float32 appearance code for every ray (e.g. one fitted to a test
@@ -232,7 +233,9 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
         model.field.eval()
     dev = model.device
     n = width * height
-    bg = torch.full((3,), float(background), device=dev)
+    if background is None and model.field.environment is None:
+        raise ValueError("background None renders the field's environment, but this field has none")
+    bg = None if background is None else torch.full((3,), float(background), device=dev)
     rgb, depth, opacity = torch.zeros(n, 3, device=dev), torch.zeros(n, device=dev), torch.zeros(n, device=dev)
     sizer = None if chunk is not None else ChunkSizer(
         sample_budget(dev), 1.5 * model.view_samples_per_ray if model.view_samples_per_ray else 64.0)
@@ -244,7 +247,8 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
             lo = 0
             while lo < n:
                 hi = min(n, lo + (chunk or sizer.next_size(n - lo)))
-                out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], bg, spp > 1, code, first_round)
+                chunk_bg = model.field.background(rays_d[lo:hi]) if bg is None else bg
+                out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, code, first_round)
                 rgb[lo:hi] += out["rgb"]
                 depth[lo:hi] += out["depth"]
                 opacity[lo:hi] += out["opacity"]

@@ -78,6 +78,23 @@ def render_unbounded_rays(rays_o: torch.Tensor, rays_d: torch.Tensor) -> tuple[t
     return rgb, depth
 
 
+def environment_colours(rays_d: torch.Tensor) -> torch.Tensor:
+    """The scene's environment at infinity alone (mountains under a skyline, sky above), as a
+    background for other scenes.
+
+    Args:
+        rays_d: [N, 3] float32 non-zero world directions (normalised inside), z up.
+
+    Returns:
+        [N, 3] float32 RGB in [0, 1], on the directions' device.
+    """
+    if not isinstance(rays_d, torch.Tensor) or rays_d.dim() != 2 or rays_d.shape[1] != 3 or rays_d.dtype != torch.float32:
+        raise ValueError(f"rays_d must be a [N, 3] float32 tensor, got {getattr(rays_d, 'shape', type(rays_d).__name__)}")
+    rgb = torch.empty_like(rays_d)
+    _wp.launch(K.environment_rays, rays_d.shape[0], [rays_d.contiguous(), rgb], _wp.device_of(rays_d))
+    return rgb
+
+
 def _ring(azimuth: np.ndarray, radius: np.ndarray, height: np.ndarray) -> np.ndarray:
     """[n, 3, 4] float64 cameras at (r cos a, r sin a, GROUND_Z + height) looking at LOOK_AT."""
     pos = np.stack([radius * np.cos(azimuth), radius * np.sin(azimuth), K.GROUND_Z + height], -1)

@@ -98,8 +98,8 @@ def render_path_video(render_frame: RenderFrame, path: CameraPath, out: str | Pa
 
 def render_trainer_video(trainer, path: CameraPath, out: Path, depth: bool, quiet: bool) -> list[Path]:
     """The video (and with ``depth`` its depth video) of a camera path through a trainer's field, on
-    white (black where the field learns the background, as in evaluation)."""
-    background = 0.0 if trainer.black_background else 1.0
+    white (over the field's learned background where it has one, as in evaluation)."""
+    background = trainer.view_background
 
     def frame(c2w, intrinsics, width, height):
         return trainer.render_image(c2w, intrinsics, width, height, background=background)

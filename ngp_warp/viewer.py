@@ -173,7 +173,7 @@ class Viewer:
             return
         width, height = view_size(aspect, longest)
         out = self.trainer.render_image(c2w_from_viser(wxyz, position), intrinsics_for(fov, width, height),
-                                        width, height, background=0.0 if self.trainer.black_background else 1.0,
+                                        width, height, background=self.trainer.view_background,
                                         supersample=1)
         view.handle.scene.set_background_image(to_image(out, self.output.value), format="jpeg", jpeg_quality=85)
         view.sent_at, view.frames = time.monotonic(), view.frames + 1

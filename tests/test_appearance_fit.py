@@ -125,7 +125,8 @@ def test_evaluation_without_codes_keeps_its_keys(tmp_path):
     path = write_demo_scene(tmp_path / "scene", width=16, height=16, n_train=4, n_test=1, supersample=1)
     trainer = Trainer(load_scene(path), small_config(1), device="cpu")
     metrics = evaluate(trainer, tmp_path, show_progress=False)
-    assert set(metrics) == {"psnr", "ssim", "lpips", "lpips_note", "train_seconds", "steps", "device", "test_split",
+    assert set(metrics) == {"psnr", "ssim", "lpips", "lpips_note", "train_seconds", "steps", "train_samples_per_ray",
+                            "device", "test_split",
                             "n_test_images", "per_image"}
     assert set(metrics["per_image"][0]) == {"image", "psnr", "ssim", "lpips"}
     _, out, gt = next(iter_test_renders(trainer, fit_appearance=True))  # no codes: nothing fitted

@@ -191,6 +191,20 @@ def test_checkpoint_from_before_distortion_spacing_keeps_world_distances(tiny_sc
     assert load_trainer(tmp_path / "c.pt", device="cpu")[0].config.distortion_spacing == "world"
 
 
+def test_contracted_checkpoint_from_before_the_environment_renders_over_black(tiny_scene, tmp_path):
+    cfg = tiny_config(1)
+    cfg.contraction = "l2"
+    assert Trainer(load_scene(tiny_scene), cfg, device="cpu").field.environment is not None  # the default now
+    cfg.field.environment = False  # as such a run was trained
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    state = torch.load(tmp_path / "c.pt", weights_only=False)
+    del state["train_config"]["field"]["environment"]
+    torch.save(state, tmp_path / "c.pt")
+    loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
+    assert loaded.field.environment is None and loaded.config.field.environment is False
+
+
 def test_trainer_resolves_an_unset_finest_resolution_and_checkpoints_it(tiny_scene, tmp_path):
     cfg = tiny_config(2)
     cfg.field.finest_resolution = None

@@ -33,7 +33,7 @@ def test_values_and_gradients_match_the_float64_twin(device, pixels, k, huber_de
         x["ray_mask"] = None
     if optional == "no extra":
         x["extra"] = None
-    differentiable = [k for k in ("rgb", "opacity", "extra") if x[k] is not None]
+    differentiable = [k for k in ("rgb", "opacity", "background", "extra") if x[k] is not None]
     ours = {k: (v.detach().to(device, copy=True).requires_grad_(k in differentiable) if v is not None else None) for k, v in x.items()}
     ref = {k: (v.detach().double().requires_grad_(k in differentiable) if v is not None and v.is_floating_point() else v)
            for k, v in x.items()}
@@ -47,6 +47,12 @@ def test_values_and_gradients_match_the_float64_twin(device, pixels, k, huber_de
     for k in differentiable:
         assert ref[k].grad.abs().max() > 0
         torch.testing.assert_close(ours[k].grad.double().cpu(), ref[k].grad, rtol=1e-4, atol=1e-8)
+
+
+def test_a_background_without_gradient_gets_none():
+    x = {k: v.requires_grad_(k == "rgb") for k, v in rays(40, "cpu", k=4).items()}
+    ray_loss(**x, rays_per_pixel=4)[0].backward()
+    assert x["background"].grad is None and x["rgb"].grad.abs().max() > 0
 
 
 def test_the_loss_is_a_tensor_of_its_own():
@@ -86,7 +92,7 @@ def test_no_kept_ray_gives_zero_loss():
     dict(rgb=torch.zeros(5, 4)), dict(opacity=torch.zeros(4)), dict(target=torch.zeros(5, 3, dtype=torch.float64)),
     dict(background=torch.zeros(3)), dict(ray_mask=torch.ones(5)), dict(extra=torch.zeros(6)),
     dict(huber_delta=0.0), dict(extra_weight=-1.0), dict(huber_delta="0.1"), dict(extra_weight=None),
-    dict(background=torch.zeros(5, 3, requires_grad=True)), dict(target=torch.zeros(5, 3, requires_grad=True)),
+    dict(target=torch.zeros(5, 3, requires_grad=True)),
     dict(rays_per_pixel=0), dict(rays_per_pixel=2), dict(rays_per_pixel=5),  # 5 rays are one pixel of 5, not 5 pixels
 ])
 def test_rejects_bad_inputs_with_a_clear_error(bad):

@@ -61,9 +61,22 @@ def test_contracted_model_is_built_around_the_contraction_box(unbounded_scene):
     assert model.march.cone_angle == CONE_ANGLE and model.march.max_step == cone_steps(unbounded_scene, "l2")[2]
     assert model.march.step_size == pytest.approx(model.grid.default_step_size * 4)  # 1024 / 256
     assert model.step_size == pytest.approx(model.march.step_size * 4.0)  # the inner box's half side
-    assert trainer.black_background
-    _, _, _, background = trainer.sample_batch(512)
-    assert torch.equal(background, torch.zeros_like(background))
+    assert trainer.black_background and trainer.view_background is None
+    _, rays_d, _, background = trainer.sample_batch(512)
+    assert background.requires_grad  # the field's environment, learned through the loss
+    torch.testing.assert_close(background, trainer.field.background(rays_d))
+    without = Trainer(unbounded_scene, apply_overrides(small_config(), ["field.environment=false"]), device="cpu")
+    _, _, _, background = without.sample_batch(512)
+    assert without.view_background == 0.0 and torch.equal(background, torch.zeros_like(background))
+
+
+def test_the_environment_starts_at_the_images_border_colour(unbounded_scene):
+    trainer = Trainer(unbounded_scene, small_config(), device="cpu")
+    images = trainer.train_split.images.float() / 255.0
+    border = torch.cat([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1).mean((0, 1))
+    colour = trainer.field.background(torch.nn.functional.normalize(torch.randn(64, 3), dim=-1))
+    assert border.std() > 0.01  # not grey: the start is the images', not the sigmoid's 0.5
+    torch.testing.assert_close(colour, border.expand(64, 3), atol=1e-5, rtol=0)
 
 
 def test_synthetic_model_is_unchanged(synthetic_scene):

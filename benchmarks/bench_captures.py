@@ -1,0 +1,178 @@
+"""The capture benchmark: scenes as people bring them, with exact ground truth, trained through
+the command a user runs (``ngp-warp train SCENE --seconds S``, defaults), one table.
+
+    python benchmarks/bench_captures.py --lego ../shared/data/lego_half --fox ../shared/data/fox \
+        --seconds 60 [--scenes demo-colmap,unbounded-colmap] [--runs 3] [--compare contraction=none]
+
+Scenes (every 8th frame held out, sorted by name; ``capture_scenes.py`` writes the forms):
+
+* ``demo-colmap`` / ``demo-colmap-sky`` / ``demo-ngp``: the built-in demo scene (60 views at
+  100×100) as a COLMAP model over white, the same over the unbounded scene's environment at
+  infinity, and as an instant-ngp transforms.json over white;
+* ``lego-colmap`` / ``lego-colmap-sky`` / ``lego-ngp``: lego_half's train and test views, every
+  2nd (150 at 400×400), in the same three forms (``--lego``);
+* ``unbounded-colmap``: the built-in unbounded scene (60 train + 10 test views) as a COLMAP model;
+* ``room-colmap``: the demo scene in its textured room (60 views at 100×100) as a COLMAP model;
+* ``fox``: instant-ngp's fox as it ships (``--fox``).
+
+Columns: whole-image PSNR (with the mean appearance code where codes are on), the right-half
+PSNR with a code fitted on the left half (codes on), SSIM (as metrics.json: right half where
+codes are on), steps, ms per step, trained samples per ray, the contraction the run used.
+``--compare KEY=VALUE`` adds a row per scene trained with that setting. Writes
+``OUT/captures.json`` with every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from capture_scenes import write_capture  # noqa: E402
+
+SCENES = ("demo-colmap", "demo-colmap-sky", "demo-ngp", "lego-colmap", "lego-colmap-sky", "lego-ngp",
+          "unbounded-colmap", "room-colmap", "fox")
+
+
+def write_room(folder: Path) -> Path:
+    """The demo scene in its textured room as an opaque NeRF-synthetic folder (50 train, 10 test)."""
+    from ngp_warp import scene as demo
+    from ngp_warp.scene_folder import write_split
+
+    def render(c2w: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+        return demo.render_room_views(c2w, intrinsics, 100, 100)
+
+    folder.mkdir(parents=True)
+    for split, c2w in zip(("train", "test"), demo.demo_cameras(50, 10, seed=0)):
+        write_split(folder, split, c2w, 100, 100, demo.CAMERA_ANGLE_X, render, {})
+    return folder
+
+
+def source(name: str, work: Path, args) -> Path:
+    """The NeRF-synthetic folder a scene is written from (generated once into ``work``)."""
+    base = name.split("-")[0]
+    folder = work / f"src-{base}"
+    if base == "lego":
+        if args.lego is None:
+            raise SystemExit(f"{name} needs --lego")
+        return args.lego
+    if not folder.exists():
+        if base == "demo":
+            from ngp_warp.scene import write_demo_scene
+
+            write_demo_scene(folder, n_train=50, n_test=10)
+        elif base == "unbounded":
+            from ngp_warp.scene_unbounded import write_unbounded_scene
+
+            write_unbounded_scene(folder, n_train=60, n_test=10)
+        else:
+            write_room(folder)
+    return folder
+
+
+def scene_folder(name: str, work: Path, args) -> Path:
+    """The capture folder of scene ``name``, written once into ``work``."""
+    if name == "fox":
+        if args.fox is None:
+            raise SystemExit("fox needs --fox")
+        return args.fox
+    folder = work / name
+    if not folder.exists():
+        form = name.split("-", 1)[1]
+        every = 2 if name.startswith("lego") else 1
+        write_capture(source(name, work, args), folder, form, every)
+    return folder
+
+
+def train(scene: Path, out: Path, args, seed: int, settings: list[str]) -> dict:
+    """One ``ngp-warp train`` run; its metrics.json with the run's contraction added."""
+    command = ["ngp-warp", "train", str(scene), "--out", str(out), "--seconds", str(args.seconds), "--seed", str(seed),
+               "--no-video", "--quiet", "--overwrite", "--device", args.device]
+    for setting in settings:
+        command += ["--set", setting]
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        print(done.stdout + done.stderr, file=sys.stderr)
+        return {"error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
+    metrics = json.loads((out / "metrics.json").read_text())
+    config = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)["train_config"]
+    metrics["contraction"] = config["contraction"] or "none"
+    return metrics
+
+
+def summary(runs: list[dict]) -> dict:
+    """Mean (and sd over runs) of each column."""
+    ok = [r for r in runs if "error" not in r]
+    if not ok:
+        return {"error": runs[0]["error"]}
+    coded = "psnr_mean_code" in ok[0]
+    columns = {
+        "whole": [r["psnr_mean_code"] if coded else r["psnr"] for r in ok],
+        "right": [r["psnr"] for r in ok] if coded else None,
+        "ssim": [r["ssim"] for r in ok],
+        "steps": [r["steps"] for r in ok],
+        "ms": [1000.0 * r["train_seconds"] / max(r["steps"], 1) for r in ok],
+        "spr": [r.get("train_samples_per_ray", math.nan) for r in ok],
+    }
+    out = {k: None if v is None else statistics.fmean(v) for k, v in columns.items()}
+    out["whole_sd"] = statistics.stdev(columns["whole"]) if len(ok) > 1 else 0.0
+    out["contraction"] = ok[0]["contraction"]
+    out["runs"] = len(ok)
+    return out
+
+
+def table(rows: list[tuple[str, str, dict]]) -> str:
+    lines = ["| scene | setting | contraction | PSNR whole | right half (fitted code) | SSIM | steps | ms/step "
+             "| samples/ray | runs |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, setting, s in rows:
+        if "error" in s:
+            lines.append(f"| {name} | {setting} | failed: {s['error']} | | | | | | | |")
+            continue
+        right = "" if s["right"] is None else f"{s['right']:.2f}"
+        sd = f" ± {s['whole_sd']:.2f}" if s["runs"] > 1 else ""
+        lines.append(f"| {name} | {setting} | {s['contraction']} | {s['whole']:.2f}{sd} | {right} | {s['ssim']:.4f} "
+                     f"| {s['steps']:.0f} | {s['ms']:.2f} | {s['spr']:.1f} | {s['runs']} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated, of {', '.join(SCENES)}")
+    parser.add_argument("--lego", type=Path, help="lego_half (NeRF-synthetic folder)")
+    parser.add_argument("--fox", type=Path, help="instant-ngp's fox folder")
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--runs", type=int, default=1, help="runs per scene and setting (seeds 0, 1, ...)")
+    parser.add_argument("--compare", action="append", default=[], help="KEY=VALUE: also train each scene with this")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--out", type=Path, default=Path("bench_captures"))
+    args = parser.parse_args()
+    names = [n for n in args.scenes.split(",") if n]
+    unknown = [n for n in names if n not in SCENES]
+    if unknown:
+        raise SystemExit(f"unknown scene {unknown[0]!r}; scenes: {', '.join(SCENES)}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows, record = [], []
+    for name in names:
+        folder = scene_folder(name, args.out / "scenes", args)
+        for setting in ["defaults", *args.compare]:
+            settings = [] if setting == "defaults" else [setting]
+            runs = [train(folder, args.out / "runs" / f"{name}-{setting}-{seed}", args, seed, settings)
+                    for seed in range(args.runs)]
+            rows.append((name, setting, summary(runs)))
+            record.append({"scene": name, "setting": setting, "runs": [
+                {k: v for k, v in r.items() if k != "per_image"} for r in runs]})
+            print(table(rows[-1:]).splitlines()[-1], flush=True)
+    print(f"\n{args.seconds:g} s per run on {args.device}\n" + table(rows))
+    (args.out / "captures.json").write_text(json.dumps({"seconds": args.seconds, "device": args.device,
+                                                        "rows": record}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
