@@ -99,7 +99,8 @@ def write_capture(src: Path, dst: Path, form: str, every: int = 1) -> Path:
             from ngp_warp.scene_unbounded import environment_colours
 
             d = torch.from_numpy(ray_directions(c2w, width, height, focal).reshape(-1, 3))
-            background = environment_colours(d).numpy().reshape(height, width, 3)
+            d = d.cuda() if torch.cuda.is_available() else d
+            background = environment_colours(d).cpu().numpy().reshape(height, width, 3)
         iio.imwrite(dst / "images" / name, composite(iio.imread(image_path), background))
         lines.append(colmap_image_line(k + 1, c2w, name))
         frames.append({"file_path": f"images/{name}", "transform_matrix": c2w.tolist()})

@@ -23,6 +23,12 @@ class _FieldForward(torch.nn.Module):
     def forward(self, positions: torch.Tensor, directions: torch.Tensor, image_indices: torch.Tensor | None = None):
         return self.field(positions, directions, image_indices)
 
+    def parameters(self, recurse: bool = True):
+        """The field's parameters that its forward uses (a graph capture differentiates each):
+        all but the environment's, which the background of the loss uses instead."""
+        background = [] if self.field.environment is None else list(self.field.environment.parameters())
+        return (p for p in self.field.parameters(recurse) if all(p is not q for q in background))
+
 
 class TrainingField:
     """The field as a training step evaluates it. With ``graphs`` (CUDA training with pruning),
