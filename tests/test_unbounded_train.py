@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from ngp_warp.config import TrainConfig, apply_overrides, resolve_defaults
-from ngp_warp.data import load_scene
+from ngp_warp.data import image_rays, load_scene
 from ngp_warp.evaluate import evaluate, iter_test_renders
 from ngp_warp.field import FieldConfig
 from ngp_warp.metrics import psnr
@@ -115,23 +115,33 @@ def test_appearance_codes_change_only_their_images_rays(unbounded_scene):
     torch.testing.assert_close(after["opacity"], before["opacity"], rtol=0, atol=0)
 
 
-def test_evaluation_renders_on_black(unbounded_scene, tmp_path):
-    trainer = Trainer(unbounded_scene, small_config(), device="cpu")
+def test_evaluation_renders_over_the_learned_environment(unbounded_scene, tmp_path):
+    trainer = Trainer(unbounded_scene, small_config(weight_average=0.0), device="cpu")  # renders: the live weights
     with torch.no_grad():
         trainer.field.appearance.weight.normal_(std=1.0)
+        trainer.field.environment.weight.normal_(std=1.0)  # a background that varies with direction
     metrics = evaluate(trainer, tmp_path, show_progress=False)
     assert metrics["appearance"].startswith("code fitted on the left half") and "psnr_mean_code" in metrics
     assert json.loads((tmp_path / "metrics.json").read_text())["appearance"] == metrics["appearance"]
     split = unbounded_scene.test
+    camera = (split.c2w[0], split.intrinsics[0], split.width, split.height)
+    field_shift = trainer.field.density_shift
     _, out, _ = next(iter_test_renders(trainer))  # the mean code
-    black = trainer.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height, background=0.0)
-    torch.testing.assert_close(out["rgb"], black["rgb"])
+    black = trainer.render_image(*camera, background=0.0)
+    rays_o, rays_d = image_rays(split, 0)
+    with trainer.weights.averaged_in_field(), torch.no_grad():
+        environment = trainer.field.background(rays_d.to(trainer.device)).reshape(black["rgb"].shape)
+    expected = black["rgb"] + environment * (1.0 - black["opacity"])[..., None]
+    torch.testing.assert_close(out["rgb"], expected.clamp(0, 1), atol=1e-5, rtol=1e-4)
+    trainer.field.density_shift = 60.0  # an empty field: every ray shows the environment alone
+    empty = trainer.render_image(*camera, background=None)
+    assert empty["opacity"].amax() < 1e-6
+    torch.testing.assert_close(empty["rgb"], environment, atol=1e-5, rtol=1e-4)
+    assert environment.std() > 0.05
+    trainer.field.density_shift = field_shift
     _, fitted, _ = next(iter_test_renders(trainer, fit_appearance=True))
-    black = trainer.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height, background=0.0,
-                                 appearance_code=fitted["appearance_code"])
-    torch.testing.assert_close(fitted["rgb"], black["rgb"])
-    white = trainer.render_image(split.c2w[0], split.intrinsics[0], split.width, split.height, background=1.0)
-    assert not torch.equal(white["rgb"], out["rgb"])  # the evaluation did not render on white
+    again = trainer.render_image(*camera, background=None, appearance_code=fitted["appearance_code"])
+    torch.testing.assert_close(fitted["rgb"], again["rgb"])
 
 
 def test_synthetic_metrics_name_no_appearance(synthetic_scene, tmp_path):
