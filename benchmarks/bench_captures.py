@@ -18,6 +18,7 @@ Scenes (every 8th frame held out, sorted by name; ``capture_scenes.py`` writes t
 Columns: whole-image PSNR (with the mean appearance code where codes are on), the right-half
 PSNR with a code fitted on the left half (codes on), SSIM (as metrics.json: right half where
 codes are on), steps, ms per step, trained samples per ray, the contraction the run used.
+``OUT/captures.png`` shows each row's first held-out view: ground truth, render, depth.
 ``--compare KEY=VALUE`` adds a row per scene trained with that setting. Writes
 ``OUT/captures.json`` with every run.
 """
@@ -32,6 +33,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import imageio.v3 as iio
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -107,6 +110,21 @@ def train(scene: Path, out: Path, args, seed: int, settings: list[str]) -> dict:
     return metrics
 
 
+def picture(run: Path, metrics: dict, height: int = 128) -> np.ndarray | None:
+    """[height, 3 W, 3] uint8: the first held-out view's ground truth, render and depth, side by
+    side (nearest-neighbour resized), or None without metrics."""
+    if "per_image" not in metrics:
+        return None
+    name = Path(metrics["per_image"][0]["image"])
+    images = [iio.imread(name)[..., :3], iio.imread(run / "renders" / f"{name.stem}.png")[..., :3],
+              iio.imread(run / "depth" / f"{name.stem}.png")]
+    images[2] = np.repeat(images[2][..., None], 3, -1) if images[2].ndim == 2 else images[2][..., :3]
+    rows = (np.arange(height) * images[0].shape[0] / height).astype(int)
+    cols = (np.arange(round(height * images[0].shape[1] / images[0].shape[0])) * images[0].shape[1]
+            / round(height * images[0].shape[1] / images[0].shape[0])).astype(int)
+    return np.concatenate([im[rows][:, cols] for im in images], 1)
+
+
 def summary(runs: list[dict]) -> dict:
     """Mean (and sd over runs) of each column."""
     ok = [r for r in runs if "error" not in r]
@@ -149,7 +167,7 @@ def main() -> None:
     parser.add_argument("--fox", type=Path, help="instant-ngp's fox folder")
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--runs", type=int, default=1, help="runs per scene and setting (seeds 0, 1, ...)")
-    parser.add_argument("--compare", action="append", default=[], help="KEY=VALUE: also train each scene with this")
+    parser.add_argument("--compare", action="append", default=[], help="KEY=VALUE[,KEY=VALUE]: also train each scene with these")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--out", type=Path, default=Path("bench_captures"))
     args = parser.parse_args()
@@ -158,18 +176,24 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown scene {unknown[0]!r}; scenes: {', '.join(SCENES)}")
     args.out.mkdir(parents=True, exist_ok=True)
-    rows, record = [], []
+    rows, record, pictures = [], [], []
     for name in names:
         folder = scene_folder(name, args.out / "scenes", args)
         for setting in ["defaults", *args.compare]:
-            settings = [] if setting == "defaults" else [setting]
+            settings = [] if setting == "defaults" else setting.split(",")
             runs = [train(folder, args.out / "runs" / f"{name}-{setting}-{seed}", args, seed, settings)
                     for seed in range(args.runs)]
+            pictures.append(picture(args.out / "runs" / f"{name}-{setting}-0", runs[0]))
             rows.append((name, setting, summary(runs)))
             record.append({"scene": name, "setting": setting, "runs": [
                 {k: v for k, v in r.items() if k != "per_image"} for r in runs]})
             print(table(rows[-1:]).splitlines()[-1], flush=True)
     print(f"\n{args.seconds:g} s per run on {args.device}\n" + table(rows))
+    shown = [p for p in pictures if p is not None]
+    if shown:  # one row per scene and setting: ground truth, render, depth of the first held-out view
+        width = max(p.shape[1] for p in shown)
+        iio.imwrite(args.out / "captures.png", np.concatenate([np.pad(p, ((0, 0), (0, width - p.shape[1]), (0, 0)))
+                                                               for p in shown]))
     (args.out / "captures.json").write_text(json.dumps({"seconds": args.seconds, "device": args.device,
                                                         "rows": record}, indent=1))
 

@@ -38,7 +38,7 @@ from ngp_warp.kernels import field as K
 
 INSTANT_NGP_FINEST_RESOLUTION = 2048.0  # instant-ngp's finest level over its unit cube
 INSTANT_NGP_LOG2_HASHMAP_SIZE = 19      # instant-ngp's table size per level, 2^19 entries
-INITIAL_OPTICAL_DEPTH = 0.5             # of an untrained contracted field across its inner box
+INITIAL_OPTICAL_DEPTH = 0.05            # of an untrained contracted field across its inner box
 
 
 @dataclass
@@ -133,14 +133,13 @@ def density_from_log(log_sigma: torch.Tensor, positions: torch.Tensor, aabb: tor
 def _contracted_density_shift(aabb: torch.Tensor) -> float:
     """s of σ = exp(h − s) for a contracted field: an untrained field (h ≈ 0) then has optical
     depth :data:`INITIAL_OPTICAL_DEPTH` across the inner box (σ₀ · 2 · its mean half side), so
-    that rays start mostly transparent, as DVGO's ``alpha_init`` does for unbounded scenes:
+    that rays start nearly transparent, as DVGO's ``alpha_init`` does for unbounded scenes:
     at σ = 1 everywhere the rays would stop within a world unit of the cameras, where the
-    colours of each training view are then painted as a fog that no other view sees. The shift
-    is kept small (2.8 for a half side of 4) because h₀ also feeds the colour MLP, and a
-    surface needs h₀ ≈ s + log σ: at depth 0.05 (s = 5.1) the colours of objects on white
-    stalled at grey (the demo scene as a COLMAP model, 2 CPU cores: training MSE stuck at 0.021
-    from step 150, against 0.0076 at step 300 from 0.5), while the unbounded scene scored the
-    same (21.0 / 21.4 dB after 400 steps)."""
+    colours of each training view are then painted as a fog that no other view sees. h₀ also
+    feeds the colour MLP, and a surface needs h₀ ≈ s + log σ (about 10 here): on 2 CPU cores
+    the colours of the demo scene on white as a COLMAP model stalled at grey (training MSE 0.021
+    from step 150 on), where depth 0.5 (s = 2.8) reached 0.0076 by step 300; on an H100 at
+    60 s the smaller shift scored lower on four of five captures, one run each (RESULTS.md)."""
     half_side = float((aabb[3:] - aabb[:3]).mean()) / 2.0
     return math.log(2.0 * half_side / INITIAL_OPTICAL_DEPTH)
 

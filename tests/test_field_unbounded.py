@@ -26,7 +26,7 @@ def test_contracted_field_is_the_plain_field_of_the_contracted_point(kind):
     sigma_ref, rgb_ref = plain(y, d)
     # the contracted field's log-density is shifted so that it starts nearly transparent: optical
     # depth 0.05 across the inner box (side 8 here) at h = 0
-    assert field.density_shift == pytest.approx(math.log(8.0 / 0.5)) and plain.density_shift == 0.0
+    assert field.density_shift == pytest.approx(math.log(8.0 / 0.05)) and plain.density_shift == 0.0
     torch.testing.assert_close(sigma, sigma_ref * math.exp(-field.density_shift), rtol=1e-4, atol=1e-8)
     torch.testing.assert_close(rgb, rgb_ref, rtol=1e-4, atol=1e-6)
     assert (sigma > 0).all()  # all of space is inside
