@@ -1,0 +1,78 @@
+"""The capture benchmark's scene forms (benchmarks/capture_scenes.py) and the per-scene choice
+they exercise: a NeRF-synthetic folder written as a COLMAP model or a transforms.json loads with
+the same cameras, a plain backdrop trains bounded, a backdrop at infinity contracted."""
+
+import importlib.util
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from ngp_warp.data import load_scene
+from ngp_warp.scene import write_demo_scene
+from ngp_warp.scene_defaults import choose_contraction, plain_backdrop
+from ngp_warp.scene_unbounded import environment_colours, render_unbounded_rays, write_unbounded_scene
+
+_spec = importlib.util.spec_from_file_location("capture_scenes",
+                                               Path(__file__).parents[1] / "benchmarks" / "capture_scenes.py")
+capture_scenes = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(capture_scenes)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    return write_demo_scene(tmp_path_factory.mktemp("c") / "demo", width=24, height=24, n_train=14, n_test=4,
+                            supersample=2)
+
+
+def _relative_poses(c2w: torch.Tensor) -> torch.Tensor:
+    """[N, 3, 3] rotations of every camera relative to the first, and [N] distances to it over
+    the largest: what a similarity (the COLMAP loader's normalisation) leaves unchanged."""
+    rot, pos = c2w[:, :, :3].double(), c2w[:, :, 3].double()
+    distances = (pos - pos[0]).norm(dim=-1)
+    return rot[0].T @ rot, distances / distances.max()
+
+
+@pytest.mark.parametrize("form", ["colmap", "ngp"])
+def test_a_written_capture_loads_with_the_source_cameras(demo, tmp_path, form):
+    capture = load_scene(capture_scenes.write_capture(demo, tmp_path / form, form))
+    views = capture_scenes.synthetic_views(demo)
+    source = torch.tensor(np.stack([m[:3] for _, m, _ in views]))
+    held = [k for k in range(len(views)) if k % 8 == 0]  # load_scene holds out every 8th frame
+    trained = [k for k in range(len(views)) if k % 8]
+    assert capture.test_is_heldout and len(capture.test) == len(held) and len(capture.train) == len(trained)
+    for ours, theirs in zip(_relative_poses(capture.train.c2w), _relative_poses(source[trained])):
+        torch.testing.assert_close(ours, theirs, atol=1e-5, rtol=0)
+    focal = 0.5 * 24 / np.tan(0.5 * views[0][2])
+    torch.testing.assert_close(capture.train.intrinsics[0].double(), torch.tensor([focal, focal, 12.0, 12.0],
+                                                                                   dtype=torch.float64))
+
+
+def test_backdrops_pick_the_contraction(demo, tmp_path):
+    white = load_scene(capture_scenes.write_capture(demo, tmp_path / "white", "colmap"))
+    sky = load_scene(capture_scenes.write_capture(demo, tmp_path / "sky", "colmap-sky"))
+    alpha = iio.imread(demo / "train" / "r_0.png")[..., 3]
+    inside, outside = alpha == 255, alpha == 0  # the objects: the same over either backdrop
+    over_white, over_sky = (iio.imread(tmp_path / form / "images" / "0000.png") for form in ("white", "sky"))
+    assert inside.any() and outside.any()
+    assert np.array_equal(over_white[inside], over_sky[inside]) and (over_white[outside] == 255).all()
+    assert (over_sky[outside] < 250).mean() > 0.9
+    assert plain_backdrop(white.train.images) and choose_contraction("auto", white) is None
+    assert not plain_backdrop(sky.train.images) and choose_contraction("auto", sky) == "l2"
+    unbounded = load_scene(capture_scenes.write_capture(
+        write_unbounded_scene(tmp_path / "u", width=24, height=24, n_train=14, n_test=2), tmp_path / "uc", "colmap"))
+    assert not plain_backdrop(unbounded.train.images) and choose_contraction("auto", unbounded) == "l2"
+
+
+def test_environment_colours_are_the_unbounded_scenes_sky():
+    d = torch.nn.functional.normalize(torch.randn(4000, 3) * torch.tensor([1.0, 1.0, 0.6]) + torch.tensor([0, 0, 0.3]),
+                                      dim=-1)
+    rgb, depth = render_unbounded_rays(torch.tensor([[0.0, 0.0, 1.0]]).expand(4000, 3).contiguous(), d)
+    misses = depth < 0  # rays that reach the environment
+    assert misses.sum() > 100
+    torch.testing.assert_close(environment_colours(d)[misses], rgb[misses])
+    assert environment_colours(d).std(0).min() > 0.02  # textured, not one colour
+    with pytest.raises(ValueError, match="rays_d"):
+        environment_colours(torch.zeros(4, 3, dtype=torch.float64))
