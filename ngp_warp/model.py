@@ -98,8 +98,8 @@ class RadianceModel:
     @property
     def learns_background(self) -> bool:
         """Whether the field models the far background (unbounded, contracted space): opaque
-        training images are then fitted over black and rendered over black, so that the field
-        itself must supply the background's colour."""
+        training images are then fitted and rendered over the field's learned environment
+        (:meth:`~ngp_warp.field.NGPField.background`; black for a field without one), not white."""
         return self.grid.contraction is not None
 
     @contextlib.contextmanager

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ngp_warp.data_error import DataError
+from ngp_warp.pose_errors import pose_errors  # noqa: F401  (process's callers check poses with it)
 
 EXTRA = 'pip install "ngp-warp[process]"'
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -31,6 +32,9 @@ SEQUENTIAL_OVERLAP = 10  # sequential matching: each image against its next 10 (
 MIN_REGISTERED = 3
 MAPPING_SEED = 0  # fixed RANSAC and mapper seed: the same input gives the same poses
 CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "OPENCV_FISHEYE")
+SIFT_KINDS = ("dense", "standard")  # dense: more features, affine shapes, domain-size pooling (CPU SIFT)
+MAPPERS = ("global", "incremental")  # COLMAP's global mapper (GLOMAP) or its incremental one
+DENSE_SIFT_FEATURES = 16384
 
 
 @dataclass
@@ -44,7 +48,13 @@ class ProcessConfig:
     camera_model: the COLMAP camera model of every image (one camera when all images have one
         size). SIMPLE_RADIAL (f, cx, cy, k1) is COLMAP's default; OPENCV's extra freedom settled
         on a wrong focal length (and mirrored poses) for the 256-px views of the test scene.
-    device: SIFT on ``auto`` (the GPU when pycolmap has CUDA), ``cpu`` or ``cuda``.
+    device: SIFT on ``auto`` (the GPU when pycolmap has CUDA), ``cpu`` or ``cuda`` (``dense``
+        SIFT runs on the CPU: COLMAP's GPU SIFT has no affine shapes).
+    sift: ``dense`` (up to 16384 features an image, affine shapes, domain-size pooling) or
+        ``standard`` (COLMAP's defaults). mapper: ``global`` or ``incremental``. On 40 of
+        lego's views over white (2 CPU cores, benchmarks/RESULTS.md) standard + incremental
+        registered 26 at 0.21° median error, dense + incremental 39 but folded by the model's
+        symmetry (13.7°), standard + global 40 folded (5.9°), dense + global 40 at 0.26°.
     overwrite: replace an existing SCENE.
     show_progress: progress bars on stderr.
     """
@@ -54,6 +64,8 @@ class ProcessConfig:
     matcher: str = "auto"
     camera_model: str = "SIMPLE_RADIAL"
     device: str = "auto"
+    sift: str = "standard"
+    mapper: str = "incremental"
     overwrite: bool = False
     show_progress: bool = True
 
@@ -65,7 +77,7 @@ class ProcessConfig:
             if value is not None and not value > 0:
                 raise ValueError(f"{name} must be positive, got {value!r}")
         choices = {"matcher": ("auto", "exhaustive", "sequential"), "camera_model": CAMERA_MODELS,
-                   "device": ("auto", "cpu", "cuda")}
+                   "device": ("auto", "cpu", "cuda"), "sift": SIFT_KINDS, "mapper": MAPPERS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
@@ -193,9 +205,15 @@ def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: st
     one_size = len(set(sizes.values())) == 1
     mode = pycolmap.CameraMode.SINGLE if one_size else pycolmap.CameraMode.PER_IMAGE
     reader = pycolmap.ImageReaderOptions(camera_model=config.camera_model)
+    extraction = pycolmap.FeatureExtractionOptions()
+    if config.sift == "dense":
+        extraction.sift.max_num_features = DENSE_SIFT_FEATURES
+        extraction.sift.estimate_affine_shape = extraction.sift.domain_size_pooling = True
+    sift_device = pycolmap.Device.cpu if config.sift == "dense" else device
     _run_stage("features", len(sizes), lambda token: pycolmap.extract_features(
         database, images_dir, image_names=list(sizes), camera_mode=mode, reader_options=reader,
-        device=device, cancellation_token=token), lambda: _count_rows(database, "keypoints"), show)
+        extraction_options=extraction, device=sift_device, cancellation_token=token),
+        lambda: _count_rows(database, "keypoints"), show)
     n = len(sizes)
     if matcher == "exhaustive":
         pairs, run = n * (n - 1) // 2, pycolmap.match_exhaustive
@@ -206,14 +224,13 @@ def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: st
     _run_stage(f"matching ({matcher})", pairs, lambda token: run(
         database, pairing_options=options, device=device, cancellation_token=token),
         lambda: _count_rows(database, "two_view_geometries"), show)
-    return database, "cuda" if device == pycolmap.Device.cuda else "cpu"
+    return database, "cuda" if sift_device == pycolmap.Device.cuda else "cpu"
 
 
-def _mapping(work: Path, database: Path, images_dir: Path, n_images: int, show: bool):
-    """Incremental mapping: the one model of the registered images, or a DataError."""
+def _mapping(work: Path, database: Path, images_dir: Path, n_images: int, show: bool, mapper: str):
+    """Global or incremental mapping: the one model of the registered images, or a DataError."""
     import pycolmap
 
-    options = pycolmap.IncrementalPipelineOptions(random_seed=MAPPING_SEED)
     registered = [0]
 
     def on_pair():
@@ -223,6 +240,10 @@ def _mapping(work: Path, database: Path, images_dir: Path, n_images: int, show: 
         registered[0] += 1
 
     def run(token):
+        if mapper == "global":  # one solve: its bar moves once, at the end
+            options = pycolmap.GlobalPipelineOptions(random_seed=MAPPING_SEED)
+            return pycolmap.global_mapping(database, images_dir, work / "models", options=options)
+        options = pycolmap.IncrementalPipelineOptions(random_seed=MAPPING_SEED)
         return pycolmap.incremental_mapping(database, images_dir, work / "models", options=options,
                                             initial_image_pair_callback=on_pair,
                                             next_image_callback=on_image, cancellation_token=token)
@@ -268,7 +289,7 @@ def _build(source: Path, tmp: Path, config: ProcessConfig, report: dict) -> None
     database, report["sift_device"] = _features_and_matches(work, tmp / "images", sizes, matcher, config)
     report["seconds"]["features+matching"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    model = _mapping(work, database, tmp / "images", len(sizes), config.show_progress)
+    model = _mapping(work, database, tmp / "images", len(sizes), config.show_progress, config.mapper)
     report["seconds"]["mapping"] = time.perf_counter() - clock
     sparse = tmp / "sparse" / "0"
     sparse.mkdir(parents=True)
@@ -336,6 +357,9 @@ def add_process_parser(subparsers) -> None:
                    help="COLMAP camera model (default: COLMAP's own, f cx cy k1)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                    help="SIFT on the GPU when pycolmap has CUDA (auto), or force cpu or cuda")
+    p.add_argument("--sift", default=ProcessConfig.sift, choices=SIFT_KINDS,
+                   help="dense: 16384 features, affine shapes, domain-size pooling (CPU); standard: COLMAP's")
+    p.add_argument("--mapper", default=ProcessConfig.mapper, choices=MAPPERS, help="structure from motion's mapper")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_process)
@@ -344,7 +368,8 @@ def add_process_parser(subparsers) -> None:
 def cmd_process(args) -> None:
     """The ``process`` subcommand: run :func:`process` and print what it made."""
     config = ProcessConfig(frames=args.frames, fps=args.fps, matcher=args.matcher, camera_model=args.camera_model,
-                           device=args.device, overwrite=args.overwrite, show_progress=not args.quiet)
+                           device=args.device, sift=args.sift, mapper=args.mapper, overwrite=args.overwrite,
+                           show_progress=not args.quiet)
     try:
         config.check()
     except ValueError as e:
@@ -353,36 +378,7 @@ def cmd_process(args) -> None:
     pycolmap.logging.minloglevel = 2  # COLMAP's own log: errors only (the bars show the progress)
     report = process(args.input, args.out, config)
     print(f"registered {report.registered} of {report.total} images, mean reprojection error "
-          f"{report.mean_reprojection_error:.3f} px ({report.matcher} matching, SIFT on {report.sift_device}, "
+          f"{report.mean_reprojection_error:.3f} px ({config.sift} SIFT on {report.sift_device}, {report.matcher} "
+          f"matching, {config.mapper} mapping, "
           f"{report.seconds['total']:.1f} s)")
     print(f"wrote {report.scene / 'transforms.json'}, {report.scene / 'sparse' / '0'}/, {report.scene / 'images'}/")
-
-
-def pose_errors(c2w: "np.ndarray", reference: "np.ndarray") -> tuple["np.ndarray", "np.ndarray", float]:
-    """How far posed cameras are from known ones, after the similarity that best aligns their centres.
-
-    The similarity (s, R, t) minimises sum_i |r_i - (s R c_i + t)|^2 over the camera centres c_i
-    (``c2w``) and r_i (``reference``), in closed form (Umeyama 1991): with the centred centres'
-    covariance Sigma = U D V^T, R = U S V^T, S = diag(1, 1, det(U V^T)), s = tr(D S) / var(c).
-
-    Args:
-        c2w: [N, 3, 4] or [N, 4, 4] float64 camera-to-world of the posed cameras (OpenGL).
-        reference: the same cameras' known poses, same shape and convention, any frame and scale.
-
-    Returns:
-        rotation error [N] float64 in degrees (angle of R_ref^T R R_est), centre error [N]
-        float64 in the reference's units, and the reference cameras' mean distance from their centroid.
-    """
-    import numpy as np
-
-    est, ref = np.asarray(c2w, dtype=np.float64)[:, :3], np.asarray(reference, dtype=np.float64)[:, :3]
-    c, r = est[:, :, 3], ref[:, :, 3]
-    c0, r0 = c - c.mean(0), r - r.mean(0)
-    u, d, vt = np.linalg.svd(r0.T @ c0 / len(c))
-    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rotation = u @ sign @ vt
-    scale = float(np.trace(np.diag(d) @ sign) / (c0 ** 2).sum(1).mean())
-    centre_error = np.linalg.norm(scale * c0 @ rotation.T - r0, axis=1)
-    relative = np.swapaxes(ref[:, :, :3], 1, 2) @ rotation @ est[:, :, :3]
-    cos = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return np.degrees(np.arccos(cos)), centre_error, float(np.linalg.norm(r0, axis=1).mean())

@@ -58,7 +58,7 @@ class Trainer:
             scene, cfg.field, self.device, grid_resolution=cfg.grid_resolution,
             steps_per_diagonal=cfg.steps_per_diagonal, cone_angle=cfg.cone_angle, contraction=cfg.contraction,
             early_stop_eps=cfg.early_stop_eps, mlp_precision=cfg.mlp_precision)
-        # opaque images of unbounded scenes: the field learns the background, fitted over black
+        # opaque images of contracted scenes: fitted over the field's learned environment (view_background)
         self.black_background = self.model.learns_background and self.train_split.images.shape[-1] == 3
         if self.field.environment is not None:
             _start_environment(self.field.environment, self.train_split.images)

@@ -41,6 +41,24 @@ def demo_photos(tmp_path_factory):
     return folder, c2w
 
 
+def test_dense_sift_and_the_global_mapper_pose_the_demo_scene(demo_photos, tmp_path):
+    photos, c2w = demo_photos
+    report = P.process(photos, tmp_path / "scene", P.ProcessConfig(sift="dense", mapper="global", device="cpu",
+                                                                  show_progress=False))
+    assert report.registered == N_VIEWS and report.sift_device == "cpu"
+    meta = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    index = [int(f["file_path"].split("/")[-1][:3]) for f in meta["frames"]]
+    rotation_error, centre_error, _ = P.pose_errors(np.array([f["transform_matrix"] for f in meta["frames"]]),
+                                                    c2w[index])
+    assert rotation_error.max() < 1.0 and centre_error.max() < 0.01 * demo.CAMERA_RADIUS
+
+
+def test_process_refuses_an_unknown_mapper_or_sift_in_one_line(demo_photos, tmp_path):
+    for setting in ({"mapper": "hierarchical"}, {"sift": "huge"}):
+        with pytest.raises(ValueError, match=next(iter(setting))):
+            P.ProcessConfig(**setting).check()
+
+
 def _cli(argv: list[str]) -> None:
     parser = argparse.ArgumentParser(prog="ngp-warp")
     P.add_process_parser(parser.add_subparsers(dest="command", required=True))
