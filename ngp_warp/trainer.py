@@ -28,6 +28,7 @@ from ngp_warp.model import RadianceModel
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.ray_loss import ray_loss
 from ngp_warp.renderer import render_view
+from ngp_warp.scene_defaults import edge_pixels
 from ngp_warp.train_step import RayCount, StepPhases, TrainingField, backward
 
 READOUT_EVERY = 10  # steps between progress readouts (each reads the loss: one host sync)
@@ -324,8 +325,7 @@ def _start_environment(environment: torch.nn.Linear, images: torch.Tensor) -> No
     hundreds of steps, while density in front of the cameras learns to paint it in a few (the
     demo scene as a COLMAP model: 9.7 dB after 300 CPU steps from grey, 16.3 from here, as
     with the backdrop given)."""
-    border = torch.cat([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)[..., :3]
-    colour = border.float().mean((0, 1)) / 255.0
+    colour = edge_pixels(images).float().mean(0) / 255.0
     environment.bias.copy_(torch.logit(colour.clamp(0.02, 0.98)))
 
 

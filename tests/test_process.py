@@ -53,7 +53,7 @@ def test_dense_sift_and_the_global_mapper_pose_the_demo_scene(demo_photos, tmp_p
     assert rotation_error.max() < 1.0 and centre_error.max() < 0.01 * demo.CAMERA_RADIUS
 
 
-def test_process_refuses_an_unknown_mapper_or_sift_in_one_line(demo_photos, tmp_path):
+def test_process_refuses_an_unknown_mapper_or_sift_in_one_line():
     for setting in ({"mapper": "hierarchical"}, {"sift": "huge"}):
         with pytest.raises(ValueError, match=next(iter(setting))):
             P.ProcessConfig(**setting).check()
