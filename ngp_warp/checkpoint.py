@@ -91,8 +91,9 @@ def _train_config(path: Path, saved: dict) -> TrainConfig:
     """The checkpoint's settings; CheckpointError for a setting this version does not have or
     accept. Checkpoints without sub-rays trained one ray per pixel, those without
     ``distortion_spacing`` took the distortion loss in world distances, and those without
-    ``field.environment`` had no learned environment."""
-    saved = {"supersample": 1, "distortion_spacing": "world", **saved}
+    ``field.environment`` had no learned environment, those without ``aabb_scale`` the box of
+    the scene's files."""
+    saved = {"supersample": 1, "distortion_spacing": "world", "aabb_scale": None, **saved}
     try:
         config = TrainConfig(**{**saved, "field": FieldConfig(**{"environment": False, **saved["field"]})})
         config.check()

@@ -10,9 +10,11 @@ from dataclasses import dataclass, field
 from ngp_warp._checks import check_numbers
 from ngp_warp.data import Scene
 from ngp_warp.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig
-from ngp_warp.scene_defaults import (appearance_dim, choose_contraction, cone_steps, contraction_box,
+from ngp_warp.scene_defaults import (appearance_dim, choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
                                      distortion_weight, occupancy_threshold)
-from ngp_warp.transforms_json import CONTRACTIONS
+from ngp_warp.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
+
+AABB_SCALES = tuple(2**k for k in range(MAX_AABB_SCALE.bit_length()))  # field boxes of 1 ... 2^15 unit cubes
 
 
 @dataclass
@@ -35,6 +37,8 @@ class TrainConfig:
                                         # scenes beyond the unit box or unbounded, 0 for NeRF-synthetic)
     contraction: str | None = "auto"    # "l2" | "linf" | None: unbounded space contracted (mip-NeRF 360,
                                         # nerfstudio's L∞); "auto": the scene's (scene_defaults)
+    aabb_scale: int | str | None = "auto"  # the field's box, instant-ngp's aabb_scale (a power of two);
+                                        # None: the scene files'; "auto": per scene (scene_defaults)
     early_stop_eps: float = 1e-4
     occupancy_threshold: float | None = None  # a grid cell is occupied while its optical thickness over
                                         # one step, σ·step, exceeds min(this, the mean); None: per scene
@@ -77,6 +81,9 @@ class TrainConfig:
                                      "near_gradient_distance"),
                        optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold",
                                  "distortion_weight"))
+        if self.aabb_scale not in ("auto", None, *AABB_SCALES) or type(self.aabb_scale) not in (str, int, type(None)):
+            raise ValueError(f"aabb_scale must be auto, None or a power of two up to {AABB_SCALES[-1]}, "
+                             f"got {self.aabb_scale!r}")
         if not 0.0 <= self.occupancy_decay < 1.0:
             raise ValueError(f"occupancy_decay must be in [0, 1), got {self.occupancy_decay!r}")
         if not 0.0 <= self.weight_average < 1.0:
@@ -133,7 +140,7 @@ def _parse_value(declared: str, text: str, key: str):
         if text.lower() not in ("true", "false", "1", "0"):
             raise ValueError(f"{key} takes true or false, got {text!r}")
         return text.lower() in ("true", "1")
-    if kind == "str":
+    if kind == "str" or ("str" in declared and not text.lstrip("+-").isdigit()):  # int | str: a word stays text
         return text
     try:
         return int(text) if kind == "int" else float(text)
@@ -216,18 +223,20 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str 
 def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> TrainConfig:
     """``config``, checked, or a copy with the settings left to None or "auto" filled in for the
     device (:func:`device_defaults`) and the scene (:mod:`ngp_warp.scene_defaults`: the
-    contraction, the cone angle, the occupancy threshold, the distortion weight and the appearance code size;
+    contraction, the field's box, the cone angle, the occupancy threshold, the distortion weight and the appearance code size;
     the finest resolution, by
     :func:`pixel_matched_resolution`), so that checkpoints store the values used. Raises
     ValueError naming a setting out of range."""
     config.check()
     config = device_defaults(config, device_type)
     kind = choose_contraction(config.contraction, scene)
+    aabb_scale = choose_aabb_scale(config.aabb_scale, scene, kind)
+    scene = scene.with_aabb_scale(aabb_scale)
     cone = cone_steps(scene, kind)[0] if config.cone_angle is None else config.cone_angle
     threshold = config.occupancy_threshold
     threshold = occupancy_threshold(scene) if threshold is None else threshold
     distortion = distortion_weight(scene, kind) if config.distortion_weight is None else config.distortion_weight
-    config = dataclasses.replace(config, contraction=kind, cone_angle=cone, occupancy_threshold=threshold,
+    config = dataclasses.replace(config, contraction=kind, aabb_scale=aabb_scale, cone_angle=cone, occupancy_threshold=threshold,
                                  distortion_weight=distortion)
     field_config = config.field
     if field_config.appearance_dim is None:

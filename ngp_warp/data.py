@@ -14,7 +14,9 @@ Every problem with the files raises :class:`DataError`, one line naming the file
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -147,6 +149,17 @@ class Scene:
             self.occupancy_aabb = self.aabb.clone()
         if self.world_from_scene is None:
             self.world_from_scene = torch.eye(4, dtype=torch.float64)
+
+    def with_aabb_scale(self, aabb_scale: int | None) -> "Scene":
+        """This scene with the field's box ``aabb_scale`` times the finest cascade's box (about
+        its centre, instant-ngp's ``aabb_scale``; a power of two) and the cascades it needs;
+        itself for None."""
+        if aabb_scale is None:
+            return self
+        box = self.occupancy_aabb
+        centre, half = (box[:3] + box[3:]) / 2, (box[3:] - box[:3]) / 2 * aabb_scale
+        return dataclasses.replace(self, aabb=torch.cat([centre - half, centre + half]),
+                                   occupancy_levels=1 + int(math.log2(aabb_scale)))
 
 
 def normalisation_record(scene: Scene) -> dict:

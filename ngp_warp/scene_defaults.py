@@ -11,6 +11,8 @@
   (:func:`plain_backdrop`), else none. Its inner box is the finest cascade's box, grown about
   its centre to hold every training camera; the field learns the colour at infinity
   (``FieldConfig.environment``).
+* Field box: a COLMAP capture of an object on a plain backdrop that trains bounded gets the box
+  its cameras see (:func:`choose_aabb_scale`), not the one holding its cameras.
 * Occupancy threshold: instant-ngp's 0.01 (optical thickness of one step) on NeRF-synthetic
   renders; 0.05 on captures. On fox (H200, 60 s, session 12, RESULTS.md) 0.01 left 60 % of the
   finest cascade's visible cells occupied: 67 trained samples per ray (median), about 4k rays
@@ -28,6 +30,8 @@
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -86,6 +90,38 @@ def choose_contraction(setting: str | None, scene: Scene) -> str | None:
     if scene.source != "nerf-synthetic" and cameras_surround_centre(scene.train.c2w):
         return None if plain_backdrop(scene.train.images) else "l2"
     return None
+
+
+def choose_aabb_scale(setting: int | str | None, scene: Scene, contraction: str | None) -> int | None:
+    """The field's box to train with, as instant-ngp's ``aabb_scale`` about the finest cascade's
+    box: ``setting`` itself (a power of two, or None for the box the scene's files give), or with
+    ``"auto"`` :func:`seen_aabb_scale` for a COLMAP capture that trains bounded around a plain
+    backdrop, else None. Such a capture has no sparse points beyond its subject, so the box
+    :func:`~ngp_warp.scene_normalisation.normalise_scene` picks holds the cameras (aabb_scale 4),
+    while the subject fills only what every camera sees."""
+    if setting != "auto":
+        return setting
+    object_on_backdrop = (scene.source == "colmap" and contraction is None
+                          and cameras_surround_centre(scene.train.c2w) and plain_backdrop(scene.train.images))
+    return seen_aabb_scale(scene) if object_on_backdrop else None
+
+
+def seen_aabb_scale(scene: Scene) -> int:
+    """The smallest power of two k for which the box k times the finest cascade's box (about its
+    centre) is as wide as the median training camera sees at that centre (its distance to it
+    times the tangent of half its narrower field of view, on either side), capped at the box
+    the scene's files give."""
+    box = scene.occupancy_aabb.double()
+    centre, unit = (box[:3] + box[3:]) / 2, float((box[3:] - box[:3]).max())
+    split = scene.train
+    distance = (split.c2w[:, :, 3].double() - centre).norm(dim=-1)
+    fx, fy = split.intrinsics[:, 0].double(), split.intrinsics[:, 1].double()
+    files = round(float((scene.aabb[3:] - scene.aabb[:3]).max()) / unit)
+    if split.fisheye:
+        return files
+    half_view = torch.minimum(split.width / (2 * fx), split.height / (2 * fy))  # tan(half field of view)
+    seen = 2 * float((distance * half_view).median())
+    return min(2 ** max(0, math.ceil(math.log2(max(seen / unit, 1.0)))), files)
 
 
 def edge_pixels(images: torch.Tensor) -> torch.Tensor:

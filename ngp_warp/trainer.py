@@ -51,9 +51,9 @@ class Trainer:
     def __init__(self, scene: Scene, config: TrainConfig | None = None, device: str | None = None):
         self.device = torch.device(device or default_device())
         self.config = cfg = resolve_defaults(config or TrainConfig(), scene, self.device.type)
+        self.scene = scene = scene.with_aabb_scale(cfg.aabb_scale)
         check_fits(cfg, scene, self.device)  # SettingsTooLarge before allocating
         torch.manual_seed(cfg.seed)
-        self.scene = scene
         self.train_split: Split = scene.train.to(self.device)
         self.model = RadianceModel.for_scene(
             scene, cfg.field, self.device, grid_resolution=cfg.grid_resolution,

@@ -12,7 +12,7 @@ import torch
 
 from ngp_warp.data import load_scene
 from ngp_warp.scene import write_demo_scene
-from ngp_warp.scene_defaults import choose_contraction, plain_backdrop
+from ngp_warp.scene_defaults import choose_aabb_scale, choose_contraction, plain_backdrop, seen_aabb_scale
 from ngp_warp.scene_unbounded import environment_colours, render_unbounded_rays, write_unbounded_scene
 
 _spec = importlib.util.spec_from_file_location("capture_scenes",
@@ -76,3 +76,21 @@ def test_environment_colours_are_the_unbounded_scenes_sky():
     assert environment_colours(d).std(0).min() > 0.02  # textured, not one colour
     with pytest.raises(ValueError, match="rays_d"):
         environment_colours(torch.zeros(4, 3, dtype=torch.float64))
+
+
+def test_an_object_on_a_plain_backdrop_gets_the_box_its_cameras_see(demo, tmp_path):
+    white = load_scene(capture_scenes.write_capture(demo, tmp_path / "white", "colmap"))
+    files_box = float((white.aabb[3:] - white.aabb[:3]).max() / (white.occupancy_aabb[3:] - white.occupancy_aabb[:3]).max())
+    assert files_box == 4  # the COLMAP box holds the cameras
+    assert seen_aabb_scale(white) == 1 and choose_aabb_scale("auto", white, None) == 1
+    seen = white.with_aabb_scale(1)
+    torch.testing.assert_close(seen.aabb, white.occupancy_aabb)
+    assert seen.occupancy_levels == 1 and white.with_aabb_scale(2).occupancy_levels == 2
+    assert choose_aabb_scale(None, white, None) is None and choose_aabb_scale(8, white, None) == 8
+    sky = load_scene(capture_scenes.write_capture(demo, tmp_path / "sky", "colmap-sky"))
+    ngp = load_scene(capture_scenes.write_capture(demo, tmp_path / "ngp", "ngp"))
+    assert choose_aabb_scale("auto", sky, "l2") is None and choose_aabb_scale("auto", ngp, None) is None
+    cameras = white.train.c2w[:, :, 3]  # the subject fills every view, and the box holds what a view sees
+    centre = (seen.aabb[:3] + seen.aabb[3:]) / 2
+    half_view = 0.5 * white.train.width / white.train.intrinsics[:, 0]
+    assert ((cameras - centre).norm(dim=-1) * half_view).median() <= (seen.aabb[3] - seen.aabb[0]) / 2

@@ -225,3 +225,21 @@ def test_trainer_checkpoints_the_resolved_device_defaults(tiny_scene, tmp_path):
     save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
     loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
     assert loaded.config.supersample == 1
+
+
+def test_checkpoint_keeps_the_field_box_and_an_old_one_the_files_box(tiny_scene, tmp_path):
+    cfg = tiny_config(1)
+    cfg.aabb_scale = 2
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+    assert trainer.scene.occupancy_levels == 2
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    loaded = load_trainer(tmp_path / "c.pt", device="cpu")[0]
+    assert loaded.config.aabb_scale == 2 and torch.equal(loaded.scene.aabb, trainer.scene.aabb)
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
+    assert trainer.config.aabb_scale is None  # "auto" keeps a NeRF-synthetic scene's box
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    state = torch.load(tmp_path / "c.pt", weights_only=False)
+    del state["train_config"]["aabb_scale"]
+    torch.save(state, tmp_path / "c.pt")
+    loaded = load_trainer(tmp_path / "c.pt", device="cpu")[0]
+    assert loaded.config.aabb_scale is None and torch.equal(loaded.scene.aabb, trainer.scene.aabb)

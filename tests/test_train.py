@@ -171,6 +171,10 @@ def test_settings_override_a_copy_of_the_config(tiny_scene):
     cfg = apply_overrides(base, ["loss=huber", "seconds=60", "prune=false", "field.finest_resolution=1024"])
     assert (cfg.loss, cfg.seconds, cfg.prune, cfg.field.finest_resolution) == ("huber", 60, False, 1024.0)
     assert (base.loss, base.seconds, base.prune, base.field.finest_resolution) == ("l2", None, True, None)
+    boxes = [apply_overrides(base, [f"aabb_scale={text}"]).aabb_scale for text in ("auto", "none", "8", "3")]
+    assert boxes == ["auto", None, 8, 3]
+    with pytest.raises(ValueError, match="aabb_scale must be auto, None or a power of two"):
+        apply_overrides(base, ["aabb_scale=3"]).check()
     assert apply_overrides(cfg, ["field.finest_resolution=none"]).field.finest_resolution is None
     for bad, message in [("nope=1", "unknown setting"), ("loss", "unknown setting"),
                          ("field.hidden=x", "an integer"), ("prune=maybe", "true or false")]:
