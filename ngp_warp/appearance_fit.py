@@ -37,6 +37,18 @@ def right_half(image: torch.Tensor) -> torch.Tensor:
     return image[:, image.shape[1] // 2:]
 
 
+def nearest_training_code(trainer: Trainer, c2w: torch.Tensor) -> torch.Tensor:
+    """[A] float32: the appearance code of the training image whose camera centre lies nearest
+    to that of ``c2w`` ([3, 4] or [4, 4]): a held-out frame of a capture shares its neighbours'
+    exposure and white balance far more than the mean over all images does. ValueError for a
+    field without appearance codes."""
+    if trainer.field.appearance is None:
+        raise ValueError("nearest_training_code needs a field with appearance codes (appearance_dim > 0)")
+    centres = trainer.train_split.c2w[:, :, 3]
+    nearest = (centres - c2w[:3, 3].to(centres)).norm(dim=-1).argmin()
+    return trainer.field.appearance.weight[nearest].detach()
+
+
 def _check_fit_inputs(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, distortion,
                       iterations: int, rays_per_iteration: int) -> None:
     """One-line ValueErrors for a field without codes and for inputs of the wrong shape."""

@@ -178,8 +178,9 @@ def _print_metrics(metrics: dict, out: Path) -> None:
           f"{metrics['train_seconds']:.1f} s training on {metrics['device']})")
     if metrics.get("psnr_mean_code") is not None:
         fitted = "appearance code and pose" if " and pose " in metrics["appearance"] else "appearance code"
-        print(f"  (right halves, each view's {fitted} fitted on its left half; whole images with the "
-              f"mean code: PSNR {metrics['psnr_mean_code']:.2f} dB)")
+        print(f"  (right halves, each view's {fitted} fitted on its left half; whole images with the nearest "
+              f"training view's code: PSNR {metrics['psnr_nearest_code']:.2f} dB, the mean code: "
+              f"{metrics['psnr_mean_code']:.2f} dB)")
     print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
 
 

@@ -13,7 +13,8 @@ import torch
 
 from tqdm import tqdm
 
-from ngp_warp.appearance_fit import FIT_ITERATIONS, fit_appearance_and_pose, fit_appearance_code, right_half
+from ngp_warp.appearance_fit import (FIT_ITERATIONS, fit_appearance_and_pose, fit_appearance_code,
+                                     nearest_training_code, right_half)
 from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.lpips import lpips_or_reason, lpips_summary
 from ngp_warp.metrics import SSIM_WINDOW, psnr, ssim
@@ -44,14 +45,16 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
 
-def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1, fit_appearance: bool = False):
+def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1, fit_appearance: bool = False,
+                      nearest_code: bool = False):
     """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th view of
     ``split`` (default: the test split), rendered (``spp`` as in ``Trainer.render_image``) and
     composited on white; where the field learns the background (``Trainer.black_background``:
     contracted scenes, opaque images) over its learned environment (black for a field without
     one: ``Trainer.view_background``). With appearance codes
-    every view is rendered with the mean code of the training images, or, with
-    ``fit_appearance``, with the code fitted on the left half of its ground truth
+    every view is rendered with the mean code of the training images, with ``nearest_code`` the
+    code of the training camera nearest to it (:func:`~ngp_warp.appearance_fit.nearest_training_code`),
+    or, with ``fit_appearance``, with the code fitted on the left half of its ground truth
     (:func:`~ngp_warp.appearance_fit.fit_appearance_code`, in the render dict as
     ``appearance_code`` [A]): score such a view on the right half only
     (:func:`~ngp_warp.appearance_fit.right_half`). When the run refined its training cameras
@@ -65,6 +68,8 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
         camera = split.camera(i)
         gt = composite_on(split.images[i].to(trainer.device), white)
         code = None
+        if nearest_code and trainer.field.appearance is not None and not fit:
+            code = nearest_training_code(trainer, camera["c2w"])
         if fit and trainer.cameras is not None:
             code, c2w = fit_appearance_and_pose(trainer, **camera, image=gt, background=background)
             camera = {**camera, "c2w": c2w}
@@ -89,21 +94,24 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
 
     With per-image appearance codes a test view has no code of its own: it is rendered with the
     code fitted on the left half of its image and scored (psnr, ssim, lpips) on the right half,
-    which the fit did not see, as nerfstudio does; its whole-image PSNR with the mean training
-    code is kept as ``psnr_mean_code`` (comparable with earlier runs), and metrics.json's
-    ``appearance`` says so. renders/ holds the fitted code's whole images."""
+    which the fit did not see, as nerfstudio does. Its whole image is scored twice: with the
+    code of the nearest training camera (``psnr_nearest_code``) and with the mean training code
+    (``psnr_mean_code``); metrics.json's ``appearance`` says so. renders/ holds the fitted code's
+    whole images."""
     out_dir = Path(out_dir)
     fitted = trainer.field.appearance is not None
     views = iter_test_renders(trainer, fit_appearance=fitted)
-    mean_code_views = iter_test_renders(trainer) if fitted else itertools.repeat(None)
+    whole_views = zip(iter_test_renders(trainer), iter_test_renders(trainer, nearest_code=True)) if fitted else \
+        itertools.repeat(None)
     per_image = []
     bar = tqdm(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
-        for (name, out, gt), mean_code in zip(views, mean_code_views):
+        for (name, out, gt), whole in zip(views, whole_views):
             stem = Path(name).stem
             if fitted:
                 scores, lpips_note = _scores(right_half(out["rgb"]), right_half(gt))
-                scores["psnr_mean_code"] = psnr(mean_code[1]["rgb"], gt)
+                scores["psnr_mean_code"] = psnr(whole[0][1]["rgb"], gt)
+                scores["psnr_nearest_code"] = psnr(whole[1][1]["rgb"], gt)
             else:
                 scores, lpips_note = _scores(out["rgb"], gt)
             per_image.append({"image": name, **scores})
@@ -114,8 +122,10 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
         bar.close()
     posed = " and pose" if trainer.cameras is not None else ""
     appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations), scored on "
-                                f"the right half",
-                  "psnr_mean_code": float(np.mean([m["psnr_mean_code"] for m in per_image]))} if fitted else {}
+                                f"the right half; whole images with the nearest training camera's code "
+                                f"(psnr_nearest_code) and the mean code (psnr_mean_code)",
+                  **{key: float(np.mean([m[key] for m in per_image])) for key in ("psnr_nearest_code", "psnr_mean_code")}
+                  } if fitted else {}
     metrics = {
         "psnr": float(np.mean([m["psnr"] for m in per_image])),
         "ssim": None if per_image[0]["ssim"] is None else float(np.mean([m["ssim"] for m in per_image])),

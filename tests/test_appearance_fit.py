@@ -8,7 +8,7 @@ import imageio.v3 as iio
 import pytest
 import torch
 
-from ngp_warp.appearance_fit import FIT_ITERATIONS, fit_appearance_code, right_half
+from ngp_warp.appearance_fit import FIT_ITERATIONS, fit_appearance_code, nearest_training_code, right_half
 from ngp_warp.config import TrainConfig
 from ngp_warp.data import load_scene
 from ngp_warp.evaluate import evaluate, iter_test_renders, to_uint8
@@ -105,20 +105,32 @@ def test_mistakes_are_one_line(trained, tmp_path):
 
 def test_evaluation_scores_the_right_half_with_the_fitted_code(trained, tmp_path):
     metrics = evaluate(trained, tmp_path, show_progress=False)
-    assert metrics["appearance"] == (f"code fitted on the left half ({FIT_ITERATIONS} iterations), "
-                                     f"scored on the right half")
+    assert metrics["appearance"].startswith(f"code fitted on the left half ({FIT_ITERATIONS} iterations), "
+                                            f"scored on the right half; whole images with the nearest")
     assert json.loads((tmp_path / "metrics.json").read_text())["appearance"] == metrics["appearance"]
     fitted = list(iter_test_renders(trained, fit_appearance=True))
     mean_code = list(iter_test_renders(trained))
-    for record, (name, out, gt), (_, mean_out, _) in zip(metrics["per_image"], fitted, mean_code, strict=True):
+    nearest = list(iter_test_renders(trained, nearest_code=True))
+    for record, (name, out, gt), (_, mean_out, _), (_, near_out, _) in zip(metrics["per_image"], fitted, mean_code,
+                                                                          nearest, strict=True):
         assert record["image"] == name and out["appearance_code"].shape == (16,)
         assert record["psnr"] == pytest.approx(psnr(right_half(out["rgb"]), right_half(gt)), abs=1e-9)
         assert record["psnr_mean_code"] == pytest.approx(psnr(mean_out["rgb"], gt), abs=1e-9)
+        assert record["psnr_nearest_code"] == pytest.approx(psnr(near_out["rgb"], gt), abs=1e-9)
+        assert not torch.equal(near_out["rgb"], mean_out["rgb"])  # another code than the mean
         assert "appearance_code" not in mean_out
         written = torch.from_numpy(iio.imread(tmp_path / "renders" / f"{Path(name).stem}.png"))
         assert torch.equal(written, torch.from_numpy(to_uint8(out["rgb"])))
     assert metrics["psnr_mean_code"] == pytest.approx(sum(m["psnr_mean_code"] for m in metrics["per_image"]) / 2)
     assert metrics["ssim"] is not None  # the right half (24 x 12) holds an SSIM window
+
+
+def test_the_nearest_code_is_the_nearest_training_cameras(trained):
+    split = trained.train_split
+    for k in (0, len(split) - 1):
+        c2w = split.c2w[k].clone()
+        c2w[:3, 3] += 1e-3  # beside training camera k
+        torch.testing.assert_close(nearest_training_code(trained, c2w), trained.field.appearance.weight[k].detach())
 
 
 def test_evaluation_without_codes_keeps_its_keys(tmp_path):
