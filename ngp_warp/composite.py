@@ -12,7 +12,10 @@ For the samples :math:`i` of one ray, front to back,
     D = \\sum_i w_i \\frac{t^{start}_i + t^{end}_i}{2}.
 
 Gradients flow to :math:`\\sigma` and :math:`c` (not to the intervals) through a hand-written
-backward kernel.
+backward kernel, to first order: a second derivative through it raises (one line) rather than
+return a silently wrong value (:mod:`ngp_warp._differentiable_once`). float64 samples go through the
+pure-torch float64 twin (:mod:`ngp_warp._reference.composite`), which autograd differentiates
+to any order, e.g. for ``torch.autograd.gradcheck``.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from __future__ import annotations
 import torch
 
 from ngp_warp import _wp
+from ngp_warp._differentiable_once import refuse_second_derivative
+from ngp_warp._reference import composite as reference
 from ngp_warp.kernels import composite as K
 
 # CUDA block size of this module's kernels: one thread walks a whole ray, and a batch has ~10^4
@@ -51,7 +56,8 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_rgb, g_opacity, g_depth, g_weights):
         sigmas, rgbs, t_starts, t_ends, ray_offsets, trans = ctx.saved_tensors  # checks for in-place changes
-        grads = [None if g is None else g.float().contiguous() for g in (g_rgb, g_opacity, g_depth, g_weights)]
+        incoming = (g_rgb, g_opacity, g_depth, g_weights)
+        grads = [None if g is None else g.detach().float().contiguous() for g in incoming]
         has_grads = sum(1 << k for k, g in enumerate(grads) if g is not None)
         if has_grads == 0:
             return None, None, None, None, None, None
@@ -63,6 +69,8 @@ class _Composite(torch.autograd.Function):
             [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, grad_sigmas, grad_rgbs],
             _wp.device_of(sigmas), block_dim=_BLOCK,
         )
+        grad_sigmas, grad_rgbs = refuse_second_derivative("composite", (grad_sigmas, grad_rgbs),
+                                                          (sigmas, rgbs, *incoming))
         return grad_sigmas, grad_rgbs, None, None, None, None
 
 
@@ -129,7 +137,8 @@ def composite(
     """Composite packed samples into per-ray colour, opacity and depth (see the module equations).
 
     Args:
-        sigmas: [S] float32 densities σ ≥ 0. rgbs: [S, 3] float32 colours.
+        sigmas: [S] float32 densities σ ≥ 0. rgbs: [S, 3] float32 colours. float64 throughout
+            (these and the intervals) runs the float64 twin instead of the kernels.
         t_starts, t_ends: [S] float32 sample intervals (no gradient).
         ray_indices: [S] int64 or int32, the ray of each sample, **sorted** (samples of a ray
             contiguous and front to back), each in ``[0, n_rays)``.
@@ -154,8 +163,9 @@ def composite(
     for name, (t, shape) in expected.items():
         if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape:
             raise ValueError(f"{name} must have shape {list(shape)}, got {getattr(t, 'shape', type(t).__name__)}")
-        if t.dtype != torch.float32:
-            raise ValueError(f"{name} must be float32, got {t.dtype}")
+        if t.dtype != sigmas.dtype or t.dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"{name} must be float32 (or float64 throughout, for the float64 twin), "
+                             f"got {t.dtype} with sigmas {sigmas.dtype}")
         if t.device != sigmas.device:
             raise ValueError(f"{name} is on {t.device} but sigmas on {sigmas.device}")
     if not isinstance(ray_indices, torch.Tensor) or tuple(ray_indices.shape) != (n_samples,):
@@ -167,12 +177,15 @@ def composite(
     if early_stop_eps < 0:
         raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
     _wp.device_of(sigmas)
-    if n_samples == 0:
-        dev = sigmas.device
-        out = (torch.zeros(n_rays, 3, device=dev), torch.zeros(n_rays, device=dev), torch.zeros(n_rays, device=dev))
-        return (*out, torch.zeros(0, device=dev)) if return_weights else out
+    if n_samples == 0:  # zeros, still connected to the inputs' graph (a loss on them can backward)
+        zero, dev, dtype = sigmas.sum() + rgbs.sum(), sigmas.device, sigmas.dtype
+        out = tuple(torch.zeros(shape, device=dev, dtype=dtype) + zero for shape in ((n_rays, 3), n_rays, n_rays))
+        return (*out, sigmas * 0) if return_weights else out
     if validate:
         _check_values(sigmas, t_starts, t_ends, ray_indices, n_rays)
+    if sigmas.dtype == torch.float64:
+        out = reference.composite(sigmas, rgbs, t_starts, t_ends, ray_indices.to(torch.int64), n_rays, early_stop_eps)
+        return out if return_weights else out[:3]
     offsets = ray_offsets_from_indices(ray_indices.to(torch.int64).contiguous(), n_rays)
     rgb, opacity, depth, weights = composite_packed(
         sigmas.contiguous(), rgbs.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets, early_stop_eps

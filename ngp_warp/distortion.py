@@ -8,6 +8,7 @@ import math
 import torch
 
 from ngp_warp import _wp
+from ngp_warp._differentiable_once import refuse_second_derivative
 from ngp_warp.kernels import distortion as K
 
 _BLOCK = 32  # one thread per ray, as in ngp_warp.composite
@@ -27,13 +28,13 @@ class _Distortion(torch.autograd.Function):
         return loss
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_loss):
         weights, t_starts, t_ends, offsets = ctx.saved_tensors
         grad = torch.zeros_like(weights)  # rows of no ray (padding) get none
         _wp.launch(K.distortion_backward, offsets.shape[0] - 1,
-                   [weights, t_starts, t_ends, offsets, ctx.near, grad_loss.float().contiguous(), grad],
+                   [weights, t_starts, t_ends, offsets, ctx.near, grad_loss.detach().float().contiguous(), grad],
                    _wp.device_of(weights), block_dim=_BLOCK)
+        (grad,) = refuse_second_derivative("distortion_loss", (grad,), (weights, grad_loss))
         return grad, None, None, None, None
 
 

@@ -16,9 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import warp as wp
-from torch.autograd.function import once_differentiable
 
 from ngp_warp import _wp
+from ngp_warp._differentiable_once import refuse_second_derivative
+from ngp_warp._reference import hashgrid as reference
 from ngp_warp.kernels import hashgrid as K
 from ngp_warp.kernels.hashgrid_native import half_vec_type, vec_type
 
@@ -89,14 +90,16 @@ class _HashGridFunction(torch.autograd.Function):
         return enc._encode(x, params)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, grad_out):
         x, params = ctx.saved_tensors
         enc = ctx.enc
         need_x, need_params = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        grad_out = _aligned(grad_out.contiguous())
-        grad_x = enc._grad_x(x, params, grad_out) if need_x else None
-        grad_params = enc._grad_params(x, grad_out) if need_params else None
+        grad = _aligned(grad_out.detach().contiguous())
+        with torch.no_grad():
+            grad_x = enc._grad_x(x, params, grad) if need_x else None
+            grad_params = enc._grad_params(x, grad) if need_params else None
+        grad_x, grad_params = refuse_second_derivative("HashGridEncoding", (grad_x, grad_params),
+                                                       (x, params, grad_out))
         return grad_x, grad_params, None
 
 
@@ -269,9 +272,17 @@ class HashGridEncoding(torch.nn.Module):
     # -- forward ---------------------------------------------------------------------------
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Encode ``x`` ``[N, D]`` float32 (on the device of ``params``) into ``[N, L*F]`` float32."""
-        self._check_points(x)
-        return _HashGridFunction.apply(x.contiguous(), self.params, self)
+        """Encode ``x`` ``[..., D]`` float32 (any strides, on the device of ``params``) into
+        ``[..., L*F]`` float32, differentiable once in ``x`` and ``params`` (a second derivative
+        raises a one-line RuntimeError). float64 points with float64 params (after
+        ``.double()``) go through the pure-torch float64 twin
+        (:mod:`ngp_warp._reference.hashgrid`), differentiable to any order (``gradcheck``)."""
+        flat = self._check_points(x)
+        if self.params.dtype == torch.float64:
+            out = reference.encode_like(self, flat, exact=True)
+        else:
+            out = _HashGridFunction.apply(flat.contiguous(), self.params, self)
+        return out.reshape(*x.shape[:-1], out.shape[-1])
 
     @torch.no_grad()
     def encode(self, x: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
@@ -282,23 +293,33 @@ class HashGridEncoding(torch.nn.Module):
         density pass."""
         if dtype not in (torch.float32, torch.bfloat16):
             raise ValueError(f"dtype must be torch.float32 or torch.bfloat16, got {dtype}")
-        self._check_points(x)
-        return self._encode(x.contiguous(), self.params, dtype)
+        flat = self._check_points(x)
+        if self.params.dtype == torch.float64:
+            return reference.encode_like(self, flat, exact=True).reshape(*x.shape[:-1], -1)
+        return self._encode(flat.contiguous(), self.params, dtype).reshape(*x.shape[:-1], -1)
 
-    def _check_points(self, x: torch.Tensor) -> None:
+    def _check_points(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` as [N, D] (leading dimensions flattened), or ValueError in one line."""
         if not isinstance(x, torch.Tensor):
             raise ValueError(f"HashGridEncoding expects a torch.Tensor, got {type(x).__name__}")
-        if x.dim() != 2 or x.shape[1] != self.n_input_dims:
-            raise ValueError(f"HashGridEncoding expects x of shape [N, {self.n_input_dims}], got {list(x.shape)}")
-        if x.dtype != torch.float32:
-            raise ValueError(f"HashGridEncoding expects float32 positions, got {x.dtype}")
+        if x.dim() < 1 or x.shape[-1] != self.n_input_dims:
+            raise ValueError(f"HashGridEncoding expects x of shape [..., {self.n_input_dims}], got {list(x.shape)}")
+        if self.params.dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"the encoding's params are {self.params.dtype}; the kernels take float32 (and "
+                             f"float64 runs the float64 twin): cast the module with .float() or .double()")
+        if x.dtype != self.params.dtype:
+            raise ValueError(f"HashGridEncoding expects {self.params.dtype} positions like its params, got {x.dtype}")
         if x.device != self.params.device:
             raise ValueError(f"x is on {x.device} but the encoding's params are on {self.params.device}")
+        x = x.reshape(-1, self.n_input_dims)
+        if x.dtype == torch.float64:
+            return x
         n = x.shape[0]
         config = self._kernels(_wp.device_of(x)).config  # (CPU or CUDA only)
         dx_items = -(-self.n_levels // max(1, config.dx_levels_per_thread)) * n
         if max(self._n_items(config, n), dx_items) > _MAX_ITEMS:  # kernels index items with int32
             raise ValueError(f"too many points for one call ({n}); split the batch")
+        return x
 
     # -- kernel plumbing -------------------------------------------------------------------
 

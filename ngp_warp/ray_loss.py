@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 
 from ngp_warp import _wp
+from ngp_warp._differentiable_once import refuse_second_derivative
 from ngp_warp.kernels import ray_loss as K
 
 
@@ -32,7 +33,6 @@ class _RayLoss(torch.autograd.Function):
         return loss, mse
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_loss, _grad_mse):
         if grad_loss is None:
             return None, None, None, None, None, None, None, None, None
@@ -41,13 +41,15 @@ class _RayLoss(torch.autograd.Function):
         grad_extra = torch.empty_like(opacity) if ctx.has_extra else None
         _wp.launch(K.ray_loss_backward, rgb.shape[0],
                    [ctx.k, rgb, opacity, background, target, int(mask is not None), mask, int(ctx.has_extra),
-                    ctx.delta, ctx.extra_weight, sums, grad_loss.float().reshape(1), grad_rgb, grad_opacity,
+                    ctx.delta, ctx.extra_weight, sums, grad_loss.detach().float().reshape(1), grad_rgb, grad_opacity,
                     grad_extra],
                    _wp.device_of(rgb))
         grad_background = None
         if ctx.needs_input_grad[3]:  # c_p = mean_k(c_r + (1 - a_r) b_p): dL/db_p = sum_k (1 - a_r) dL/dc_r
-            grad_background = ((1.0 - opacity)[:, None] * grad_rgb).view(-1, ctx.k, 3).sum(1)
-        return grad_rgb, grad_opacity, None, grad_background, None, grad_extra, None, None, None
+            grad_background = ((1.0 - opacity.detach())[:, None] * grad_rgb).view(-1, ctx.k, 3).sum(1)
+        grads = refuse_second_derivative("ray_loss", (grad_rgb, grad_opacity, grad_background, grad_extra),
+                                         (rgb, opacity, background, grad_loss))
+        return grads[0], grads[1], None, grads[2], None, grads[3], None, None, None
 
 
 def ray_loss(rgb: torch.Tensor, opacity: torch.Tensor, target: torch.Tensor, background: torch.Tensor,

@@ -105,14 +105,14 @@ def _check_rays(rays_o: torch.Tensor, rays_d: torch.Tensor, grid: OccupancyGrid)
     if not isinstance(grid, OccupancyGrid):
         raise ValueError(f"grid must be an OccupancyGrid, got {type(grid).__name__}")
     for name, t in (("rays_o", rays_o), ("rays_d", rays_d)):
-        if not isinstance(t, torch.Tensor) or t.dim() != 2 or t.shape[1] != 3:
-            raise ValueError(f"{name} must be a [N, 3] tensor, got {getattr(t, 'shape', type(t).__name__)}")
+        if not isinstance(t, torch.Tensor) or t.dim() < 1 or t.shape[-1] != 3:
+            raise ValueError(f"{name} must be a [..., 3] tensor, got {getattr(t, 'shape', type(t).__name__)}")
         if t.dtype != torch.float32:
             raise ValueError(f"{name} must be float32, got {t.dtype}")
         if t.device != grid.occs.device:
             raise ValueError(f"{name} is on {t.device} but the grid is on {grid.occs.device}")
-    if rays_o.shape[0] != rays_d.shape[0]:
-        raise ValueError(f"rays_o holds {rays_o.shape[0]} rays but rays_d {rays_d.shape[0]}")
+    if rays_o.shape != rays_d.shape:
+        raise ValueError(f"rays_o has shape {list(rays_o.shape)} but rays_d {list(rays_d.shape)}")
 
 
 def _read_total(total: torch.Tensor, before_sync: Callable[[], None] | None) -> list[int]:
@@ -264,7 +264,8 @@ def ray_marching(
     Args:
         rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 directions (``t`` is measured in
             units of ``|d|``, so pass unit vectors for world-space steps); zero directions
-            produce no samples.
+            produce no samples. Any strides; leading dimensions [..., 3] are flattened, and
+            the samples' ray indices count the flattened rays.
         grid: the occupancy grid, on the rays' device. march: :class:`MarchOptions`.
         before_sync: called once, after the count pass is queued and before the host waits for
             the total, to keep the GPU busy through the sync (the trainer queues the previous
@@ -281,6 +282,7 @@ def ray_marching(
         :class:`RaySamples`.
     """
     _check_rays(rays_o, rays_d, grid)
+    rays_o, rays_d = (t.detach().reshape(-1, 3).contiguous() for t in (rays_o, rays_d))
     step, max_step, cap = _march_steps(march, grid)
     if capacity is not None and (type(capacity) is not int or capacity < 1):
         raise ValueError(f"capacity must be None or an int ≥ 1, got {capacity!r}")

@@ -28,6 +28,7 @@ from collections.abc import Callable
 
 import torch
 
+from ngp_warp._reference import composite as reference
 from ngp_warp.composite import composite_packed
 from ngp_warp.occupancy import OccupancyGrid
 from ngp_warp.prune import PrunedSamples, prune_samples
@@ -98,15 +99,20 @@ def _midpoints(samples: RaySamples) -> torch.Tensor:
 
 
 def _attached(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor) -> RaySamples:
-    """``samples`` whose positions carry the gradient to the rays that require it (for camera
-    refinement, :mod:`ngp_warp.camera_refinement`): the march's
+    """``samples`` whose positions and directions carry the gradient to the rays that require it
+    (camera refinement, :mod:`ngp_warp.camera_refinement`, or a model of one's own): the march's
     positions plus :math:`(o + t d) - \\mathrm{sg}(o + t d)` of each sample's ray at its midpoint
-    :math:`t` (zero in value; padding rows, of ray N, get none), so that
-    :math:`\\partial x / \\partial o = I` and :math:`\\partial x / \\partial d = t I` with the
-    distances held fixed. Directions stay detached."""
+    :math:`t`, and its directions plus :math:`d - \\mathrm{sg}(d)` (both zero in value; padding
+    rows, of ray N, get none), so that :math:`\\partial x / \\partial o = I`,
+    :math:`\\partial x / \\partial d = t I` with the distances held fixed, and a view-dependent
+    field's direction gradient reaches ``rays_d``. float64 rays give float64 positions
+    :math:`o + t d` and directions :math:`d` outright (the float64 path)."""
     rays = torch.nn.functional.pad(torch.stack([rays_o, rays_d]), (0, 0, 0, 1))[:, samples.ray_indices]
-    moved = rays[0] + _midpoints(samples)[:, None] * rays[1]
-    return dataclasses.replace(samples, positions=samples.positions + (moved - moved.detach()))
+    moved = rays[0] + _midpoints(samples)[:, None].to(rays.dtype) * rays[1]
+    if rays.dtype == torch.float64:
+        return dataclasses.replace(samples, positions=moved, directions=rays[1])
+    return dataclasses.replace(samples, positions=samples.positions + (moved - moved.detach()),
+                               directions=samples.directions + (rays[1] - rays[1].detach()))
 
 
 class _ScaleGradient(torch.autograd.Function):
@@ -138,10 +144,10 @@ def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_im
     the field's outputs' gradients scaled near the ray origins given ``near_gradient_distance``."""
     n_rays, dev = samples.ray_offsets.shape[0] - 1, samples.ray_offsets.device
     n_samples = samples.n_samples
-    if n_samples == 0:
+    if n_samples == 0 and not torch.is_grad_enabled():
         rgb, per_ray = torch.zeros(n_rays, 3, device=dev), torch.zeros(n_rays, device=dev)
         return rgb, per_ray, per_ray.clone(), torch.zeros(0, device=dev)
-    if ray_images is None:
+    if ray_images is None:  # with no sample at all, the field's zero rows keep the result in its graph
         sigmas, rgbs = field_fn(samples.positions, samples.directions)
     else:
         sample_images = torch.nn.functional.pad(ray_images, (0, 1))[samples.ray_indices]
@@ -155,8 +161,32 @@ def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_im
     if near_gradient_distance > 0 and torch.is_grad_enabled():
         scale = _near_camera_scale(samples, near_gradient_distance)
         sigmas, rgbs = _ScaleGradient.apply(sigmas, scale), _ScaleGradient.apply(rgbs, scale[:, None])
+    if n_samples == 0:  # zeros, in the field's graph
+        zero = sigmas.sum() + rgbs.sum()
+        rgb, per_ray = torch.zeros(n_rays, 3, device=dev, dtype=zero.dtype), torch.zeros(n_rays, device=dev, dtype=zero.dtype)
+        return rgb + zero, per_ray + zero, per_ray + zero, sigmas * 0
+    if sigmas.dtype == torch.float64:  # the float64 twin
+        f64 = torch.float64
+        return reference.composite(sigmas, rgbs.to(f64), samples.t_starts.to(f64), samples.t_ends.to(f64),
+                                   samples.ray_indices, n_rays, early_stop_eps)
     return composite_packed(sigmas.float().contiguous(), rgbs.float().contiguous(),
                             samples.t_starts, samples.t_ends, samples.ray_offsets, early_stop_eps)
+
+
+def _flat_rays(rays_o, rays_d, sample_capacity) -> tuple[torch.Tensor, torch.Tensor, torch.Size]:
+    """(rays_o [N, 3], rays_d [N, 3], their leading shape) from rays of any shape [..., 3] and
+    strides, float32 or float64 (both alike); one-line ValueErrors otherwise."""
+    for name, t in (("rays_o", rays_o), ("rays_d", rays_d)):
+        if not isinstance(t, torch.Tensor) or t.dim() < 1 or t.shape[-1] != 3:
+            raise ValueError(f"{name} must be a [..., 3] tensor, got {getattr(t, 'shape', type(t).__name__)}")
+        if t.dtype not in (torch.float32, torch.float64) or t.dtype != rays_o.dtype:
+            raise ValueError(f"rays_o and rays_d must both be float32 (or both float64, the float64 path), "
+                             f"got {rays_o.dtype} and {rays_d.dtype}")
+    if rays_o.shape != rays_d.shape:
+        raise ValueError(f"rays_o has shape {list(rays_o.shape)} but rays_d {list(rays_d.shape)}")
+    if rays_o.dtype == torch.float64 and sample_capacity is not None:
+        raise ValueError("sample_capacity is for float32 rays (the float64 path sizes its samples)")
+    return rays_o.reshape(-1, 3), rays_d.reshape(-1, 3), rays_o.shape[:-1]
 
 
 def _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images,
@@ -192,11 +222,17 @@ def render_rays(
     with :math:`w_i` as in :func:`ngp_warp.composite`.
 
     Args:
-        rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 unit directions. Rays that
-            require grad get it through the sample positions (:func:`_attached`).
+        rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 unit directions. Any strides;
+            leading dimensions [..., 3] are flattened (the outputs per ray take them back).
+            Rays that require grad get it through the sample positions and the field's
+            directions (:func:`_attached`). float64 rays (and a float64 field) run the float64
+            path: the march in float32, then positions, directions and compositing in float64
+            through the pure-torch twin, differentiable to any order (``gradcheck``).
         grid: :class:`ngp_warp.OccupancyGrid` on the rays' device.
         field_fn: ``(positions [S, 3] float32, directions [S, 3] float32) → (sigmas [S] or
-            [S, 1] ≥ 0, rgbs [S, 3])``; not called when no ray has a sample.
+            [S, 1] ≥ 0, rgbs [S, 3])``. When no ray has a sample it is called with S = 0 under
+            autograd (so that the zero outputs stay in its graph and ``backward`` runs), and
+            not at all without.
         march: the ray interval, steps and caps (:class:`ngp_warp.MarchOptions`; ``step_size``
             defaults to the box diagonal / 1024).
         early_stop_eps: samples behind transmittance ``< early_stop_eps`` contribute nothing
@@ -231,8 +267,11 @@ def render_rays(
         ``t_ends`` [S] and ``ray_offsets`` [N + 1] int32 (samples of ray r are
         ``ray_offsets[r] : ray_offsets[r+1]``; padding rows lie past ``ray_offsets[N]``).
     """
+    rays_o, rays_d, leading = _flat_rays(rays_o, rays_d, sample_capacity)
+    if isinstance(ray_images, torch.Tensor) and ray_images.shape == leading:
+        ray_images = ray_images.reshape(-1)
     _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images, near_gradient_distance)
-    samples = ray_marching(rays_o, rays_d, grid, march, before_sync=before_sync, validate=validate,
+    samples = ray_marching(rays_o.float(), rays_d.float(), grid, march, before_sync=before_sync, validate=validate,
                            unit_directions=True)
     if validate:
         field_fn, sigma_fn = _checked(field_fn, "field_fn"), sigma_fn and _checked(sigma_fn, "sigma_fn")
@@ -240,12 +279,15 @@ def render_rays(
     extra = {}
     if sigma_fn is not None:
         samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity)
-    if (rays_o.requires_grad or rays_d.requires_grad) and torch.is_grad_enabled():
+    if rays_o.dtype == torch.float64 or ((rays_o.requires_grad or rays_d.requires_grad) and torch.is_grad_enabled()):
         samples = _attached(samples, rays_o, rays_d)
     rgb, opacity, depth, weights = _shade(samples, field_fn, early_stop_eps, ray_images, near_gradient_distance)
     if bg is not None:
         rgb = rgb + bg * (1.0 - opacity)[:, None]
-    out = {"rgb": rgb, "opacity": opacity, "depth": depth, "n_samples": samples.n_samples, **extra}
+    out = {"rgb": rgb.reshape(*leading, 3), "opacity": opacity.reshape(leading), "depth": depth.reshape(leading),
+           "n_samples": samples.n_samples, **extra}
+    if "ray_mask" in out:
+        out["ray_mask"] = out["ray_mask"].reshape(leading)
     if return_samples:
         out.update(weights=weights, ray_indices=samples.ray_indices, t_starts=samples.t_starts,
                    t_ends=samples.t_ends, ray_offsets=samples.ray_offsets)

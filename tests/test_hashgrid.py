@@ -246,10 +246,10 @@ def test_half_precision_gradient_close_to_float32():
 def test_bad_input_raises_value_error():
     enc = HashGridEncoding(3, 2, 2, 8, 4, 2.0)
     bad_inputs = (
-        torch.rand(10),  # rank 1
+        torch.rand(10),  # width 1
         torch.rand(10, 2),  # width
-        torch.rand(2, 10, 3),  # rank 3
-        torch.rand(10, 3).double(),  # dtype
+        torch.rand(2, 10, 2),  # width, batched
+        torch.rand(10, 3).double(),  # dtype (float64 needs float64 params)
         torch.zeros(10, 3, dtype=torch.int32),
     )
     for bad in bad_inputs:

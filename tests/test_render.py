@@ -98,11 +98,11 @@ def test_gradients_reach_rays_that_require_them_like_a_float64_pipeline(pruned):
     assert out["n_samples"] > 1000
     (out["rgb"] * torch.tensor([1.0, -0.5, 0.3])).sum().backward()
 
-    # float64: the same samples (distances fixed), positions o + t d, directions detached
+    # float64: the same samples (distances fixed), positions o + t d, directions d
     n = out["ray_offsets"][-1]  # padding rows past it
     ri, t = out["ray_indices"][:n], (0.5 * (out["t_starts"] + out["t_ends"]))[:n].double()
     o64, d64 = rays_o.double().requires_grad_(True), rays_d.double().requires_grad_(True)
-    sigmas, rgbs = blob_field(o64[ri] + t[:, None] * d64[ri], rays_d.double()[ri])
+    sigmas, rgbs = blob_field(o64[ri] + t[:, None] * d64[ri], d64[ri])
     rgb, opacity, _, _ = composite_ref.composite(sigmas, rgbs, out["t_starts"][:n], out["t_ends"][:n], ri, 64, 1e-4)
     ((rgb + 0.5 * (1 - opacity[:, None])) * torch.tensor([1.0, -0.5, 0.3], dtype=torch.float64)).sum().backward()
     torch.testing.assert_close(o.grad, o64.grad.float(), rtol=2e-3, atol=2e-5)
@@ -166,17 +166,25 @@ def test_background_and_returned_samples():
         torch.testing.assert_close(out["rgb"], expected)
 
 
-def test_no_samples_returns_background_without_calling_the_field():
+def test_no_samples_returns_background_in_the_fields_graph():
     grid = sphere_grid(16)
     rays_o = torch.tensor([[0.0, 3.0, 0.0], [5.0, 5.0, 5.0]])
     rays_d = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    weight = torch.tensor(2.0, requires_grad=True)
+    rows = []
 
     def field(positions, directions):
-        raise AssertionError("field called without samples")
+        rows.append(positions.shape[0])
+        return weight * positions.sum(-1).abs(), weight * torch.sigmoid(directions)
 
     out = render_rays(rays_o, rays_d, grid, field, background=torch.tensor([0.3, 0.6, 0.9]), return_samples=True)
-    assert out["n_samples"] == 0 and out["weights"].shape == (0,)
+    assert out["n_samples"] == 0 and out["weights"].shape == (0,) and rows == [0]
     assert torch.equal(out["rgb"], torch.tensor([[0.3, 0.6, 0.9]] * 2)) and not out["opacity"].any()
+    out["rgb"].sum().backward()  # a loss on a batch that missed everything still backpropagates
+    assert weight.grad == 0
+    with torch.no_grad():
+        out = render_rays(rays_o, rays_d, grid, field, background=0.5)
+    assert rows == [0] and torch.equal(out["rgb"], torch.full((2, 3), 0.5))  # not called without autograd
 
 
 @pytest.mark.parametrize(

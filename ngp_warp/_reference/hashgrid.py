@@ -33,12 +33,15 @@ def encode(
     hashed,
     interpolation: str = "linear",
     dtype: torch.dtype = torch.float64,
+    exact: bool = False,
 ) -> torch.Tensor:
     """Encode ``x`` ``[N, D]`` with the flat table ``params``: ``[N, L*F]`` in ``dtype``.
 
     ``scales``, ``resolutions``, ``offsets`` (``L + 1`` entries) and ``hashed`` are the level
     constants of ``ngp_warp.hashgrid.level_table``. ``x`` values must be float32-representable
-    (the cell is chosen from their float32 value).
+    (the cell is chosen from their float32 value, and the fraction rounded as the kernel's);
+    ``exact`` computes cell and fraction from ``x`` in ``dtype`` instead, so that the encoding is
+    a smooth function of ``x`` within a cell (for ``gradcheck``).
     """
     n, D = x.shape
     F = n_features
@@ -55,6 +58,9 @@ def encode(
         # with d frac / dx = scale for autograd
         frac32 = (pos32 - cell).to(torch.float32).to(dtype)
         frac = frac32 + (xs * scale - (xs * scale).detach())
+        if exact:
+            cell = torch.floor(xs.detach() * scale + 0.5)
+            frac = xs * scale + 0.5 - cell
         grid = cell.to(torch.int64) & _M32  # (uint32)(int)floor(pos)
         w1 = frac * frac * (3.0 - 2.0 * frac) if interpolation == "smoothstep" else frac
         w0 = 1.0 - w1
@@ -79,7 +85,8 @@ def encode(
     return torch.cat(outs, dim=1) if outs else torch.zeros(n, 0, dtype=dtype, device=x.device)
 
 
-def encode_like(enc, x: torch.Tensor, params: torch.Tensor | None = None, dtype: torch.dtype = torch.float64):
+def encode_like(enc, x: torch.Tensor, params: torch.Tensor | None = None, dtype: torch.dtype = torch.float64,
+                exact: bool = False):
     """:func:`encode` with the hyper-parameters of a ``HashGridEncoding`` ``enc``."""
     return encode(
         x,
@@ -91,4 +98,5 @@ def encode_like(enc, x: torch.Tensor, params: torch.Tensor | None = None, dtype:
         hashed=enc.hashed,
         interpolation=enc.interpolation,
         dtype=dtype,
+        exact=exact,
     )

@@ -1,0 +1,36 @@
+"""Hand-written backward kernels are differentiable once: :func:`refuse_second_derivative`
+ties their gradients to every tensor they were computed from, so that differentiating through
+them again (``create_graph=True``, then another ``grad``) raises instead of silently dropping
+the second-order terms. torch's ``once_differentiable`` alone does not: it refuses only when
+the incoming gradient itself requires grad, and treats the saved inputs as constants."""
+
+from __future__ import annotations
+
+import torch
+
+
+class _Refused(torch.autograd.Function):
+    """Identity on the gradients; its own backward raises (one line naming the op)."""
+
+    @staticmethod
+    def forward(ctx, op: str, n_grads: int, *tensors):
+        ctx.op = op
+        return tuple(t.clone() for t in tensors[:n_grads])
+
+    @staticmethod
+    def backward(ctx, *_):
+        raise RuntimeError(f"{ctx.op}'s backward is a hand-written Warp kernel, differentiable once: a second "
+                           f"derivative through it is not supported (float64 inputs run the pure-torch twin, "
+                           f"which is differentiable to any order)")
+
+
+def refuse_second_derivative(op: str, grads: tuple, sources: tuple) -> tuple:
+    """``grads`` (tensors or None) as they are; under ``create_graph`` with any of ``sources``
+    (the forward's inputs and the incoming gradients, None allowed) requiring grad, the same
+    values whose backward raises."""
+    if not torch.is_grad_enabled() or not any(isinstance(t, torch.Tensor) and t.requires_grad for t in sources):
+        return grads
+    present = [g for g in grads if g is not None]
+    tied = iter(_Refused.apply(op, len(present), *present,
+                               *[t for t in sources if isinstance(t, torch.Tensor) and t.requires_grad]))
+    return tuple(None if g is None else next(tied) for g in grads)

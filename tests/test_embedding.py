@@ -1,0 +1,162 @@
+"""The render op as a researcher embeds it: gradients to every input they may ask for (rays_d
+through a view-dependent field included), a second derivative refused in float32 and right in
+float64, rays of any strides and leading shape, and a batch that misses everything still in the
+graph. Each case against a pure-torch float64 pipeline on the same samples."""
+
+import pytest
+import torch
+
+from ngp_warp import HashGridEncoding, MarchOptions, OccupancyGrid, composite, render_rays
+from ngp_warp._reference import composite as composite_ref
+
+AABB = torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
+CENTRE = torch.tensor([0.1, -0.05, 0.0])
+MARCH = MarchOptions(step_size=0.02)
+
+
+def full_grid() -> OccupancyGrid:
+    grid = OccupancyGrid(AABB, resolution=8)
+    grid.update(0, lambda p: torch.ones(p.shape[0]))
+    return grid
+
+
+def rays(n: int, seed: int = 0, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays from radius 3 aimed near the centre, all through the box."""
+    g = torch.Generator().manual_seed(seed)
+    o = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1) * 3.0
+    d = torch.nn.functional.normalize(CENTRE + (torch.rand(n, 3, generator=g) - 0.5) * 0.8 - o, dim=-1)
+    return o.to(dtype), d.to(dtype)
+
+
+class ViewField(torch.nn.Module):
+    """A smooth blob whose colour depends on the view direction (as a NeRF's does)."""
+
+    def __init__(self):
+        super().__init__()
+        self.shine = torch.nn.Parameter(torch.tensor([1.5, -0.7, 0.9]))
+        self.density = torch.nn.Parameter(torch.tensor(5.0))
+
+    def forward(self, positions, directions):
+        sigma = self.density * torch.exp(-((positions - CENTRE.to(positions)) ** 2).sum(-1) / 0.3)
+        return sigma, torch.sigmoid(positions + directions * self.shine)
+
+
+def reference_render(field, rays_o, rays_d, out, background=0.5):
+    """float64 torch pipeline on ``out``'s samples (distances fixed): positions o + t d,
+    directions d, the float64 compositing twin."""
+    ri, t = out["ray_indices"], 0.5 * (out["t_starts"] + out["t_ends"]).double()
+    sigmas, rgbs = field(rays_o[ri] + t[:, None] * rays_d[ri], rays_d[ri])
+    rgb, opacity, _, _ = composite_ref.composite(sigmas, rgbs, out["t_starts"], out["t_ends"], ri, rays_o.shape[0], 1e-4)
+    return rgb + background * (1 - opacity[:, None])
+
+
+def test_rays_d_gets_the_view_dependent_fields_gradient():
+    field, (rays_o, rays_d) = ViewField(), rays(48)
+    d = rays_d.clone().requires_grad_(True)
+    out = render_rays(rays_o, d, full_grid(), field, MARCH, background=0.5, return_samples=True)
+    weights = torch.tensor([1.0, -0.5, 0.3])
+    (out["rgb"] * weights).sum().backward()
+    d64 = rays_d.double().requires_grad_(True)
+    (reference_render(field.double(), rays_o.double(), d64, out) * weights.double()).sum().backward()
+    torch.testing.assert_close(d.grad, d64.grad.float(), rtol=2e-3, atol=2e-5)
+    assert d.grad.abs().max() > 1e-2
+    # the part through the directions alone: the field without its view dependence differs
+    field.shine.data.zero_()
+    d.grad = None
+    (render_rays(rays_o, d, full_grid(), field.float(), MARCH, background=0.5)["rgb"] * weights).sum().backward()
+    assert (d.grad - d64.grad.float()).abs().max() > 1e-2
+
+
+def test_a_second_derivative_is_refused_in_float32_and_right_in_float64():
+    field, (rays_o, rays_d) = ViewField(), rays(8)
+    o = rays_o.clone().requires_grad_(True)
+    out = render_rays(o, rays_d, full_grid(), field, MARCH, background=0.5)
+    (g,) = torch.autograd.grad(out["rgb"].sum(), o, create_graph=True)
+    with pytest.raises(RuntimeError, match="differentiable once"):
+        torch.autograd.grad(g.square().sum(), list(field.parameters()))
+    # float64: double backward through the twin, against a pure-torch pipeline on the same samples
+    field64, o64 = ViewField().double(), rays_o.double().requires_grad_(True)
+    out = render_rays(o64, rays_d.double(), full_grid(), field64, MARCH, background=0.5, return_samples=True)
+    (g,) = torch.autograd.grad(out["rgb"].sum(), o64, create_graph=True)
+    ours = torch.autograd.grad(g.square().sum(), list(field64.parameters()))
+    o_ref = rays_o.double().requires_grad_(True)
+    (g,) = torch.autograd.grad(reference_render(field64, o_ref, rays_d.double(), out).sum(), o_ref, create_graph=True)
+    theirs = torch.autograd.grad(g.square().sum(), list(field64.parameters()))
+    for a, b in zip(ours, theirs, strict=True):
+        torch.testing.assert_close(a, b)
+        assert a.abs().max() > 1e-3
+
+
+def test_float64_rays_pass_gradcheck_in_the_fields_parameters():
+    """gradcheck in the field's parameters (the samples do not move with them; in the rays they
+    do, and the op's gradient holds the distances fixed, as nerfacc's)."""
+    grid, (rays_o, rays_d) = full_grid(), rays(4, dtype=torch.float64)
+
+    def render(shine, density):
+        def field(p, v):
+            return density * torch.exp(-((p - CENTRE.double()) ** 2).sum(-1) / 0.3), torch.sigmoid(p + v * shine)
+
+        return render_rays(rays_o, rays_d, grid, field, MARCH, background=0.5)["rgb"]
+
+    inputs = (torch.tensor([1.5, -0.7, 0.9], dtype=torch.float64, requires_grad=True),
+              torch.tensor(5.0, dtype=torch.float64, requires_grad=True))
+    assert torch.autograd.gradcheck(render, inputs) and torch.autograd.gradgradcheck(render, inputs)
+
+
+def test_composite_refuses_a_second_derivative_and_its_float64_twin_takes_one():
+    g = torch.Generator().manual_seed(1)
+    n_rays, s = 3, 12
+    ray_indices = torch.sort(torch.randint(0, n_rays, (s,), generator=g)).values
+    t0 = torch.rand(s, generator=g)
+    t1 = t0 + 0.3 * torch.rand(s, generator=g)
+    sigmas, rgbs = torch.rand(s, generator=g) * 3, torch.rand(s, 3, generator=g)
+    a, b = sigmas.clone().requires_grad_(True), rgbs.clone().requires_grad_(True)
+    (ga,) = torch.autograd.grad(composite(a, b, t0, t1, ray_indices, n_rays)[0].sum(), a, create_graph=True)
+    with pytest.raises(RuntimeError, match="differentiable once"):
+        torch.autograd.grad(ga.square().sum(), b)
+    inputs = (sigmas.double().requires_grad_(True), rgbs.double().requires_grad_(True))
+    fn = lambda x, c: composite(x, c, t0.double(), t1.double(), ray_indices, n_rays)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, inputs) and torch.autograd.gradgradcheck(fn, inputs)
+    with pytest.raises(ValueError, match="float32 .or float64 throughout"):
+        composite(inputs[0], rgbs, t0, t1, ray_indices, n_rays)
+
+
+def test_rays_of_any_strides_and_leading_shape():
+    field, grid = ViewField(), full_grid()
+    rays_o, rays_d = rays(24)
+    flat = render_rays(rays_o, rays_d, grid, field, MARCH, background=0.5)
+    rotation = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(2))).Q
+    transposed = (rotation @ (rays_d @ rotation).T).T  # the usual pose pattern: not contiguous
+    assert not transposed.is_contiguous()
+    out = render_rays(rays_o, transposed, grid, field, MARCH, background=0.5)
+    torch.testing.assert_close(out["rgb"], flat["rgb"], rtol=1e-4, atol=1e-5)
+    image = render_rays(rays_o.reshape(4, 6, 3), rays_d.reshape(4, 6, 3), grid, field, MARCH, background=0.5)
+    assert image["rgb"].shape == (4, 6, 3) and image["opacity"].shape == image["depth"].shape == (4, 6)
+    torch.testing.assert_close(image["rgb"].reshape(24, 3), flat["rgb"])
+    with pytest.raises(ValueError, match="rays_o has shape"):
+        render_rays(rays_o.reshape(4, 6, 3), rays_d, grid, field, MARCH)
+
+
+def test_hash_grid_takes_batches_float64_and_names_a_bad_dtype():
+    enc = HashGridEncoding(n_levels=4, log2_hashmap_size=8, base_resolution=4)
+    with torch.no_grad():
+        enc.params.uniform_(-1, 1)
+    x = torch.rand(5, 7, 3)
+    out = enc(x)
+    assert out.shape == (5, 7, 8)
+    torch.testing.assert_close(out.reshape(35, 8), enc(x.reshape(35, 3)))
+    torch.testing.assert_close(enc(x.transpose(0, 1)), out.transpose(0, 1))
+    enc.double()  # the float64 twin, exact in x, so gradcheck holds
+    x64 = x[0].double().requires_grad_(True)
+    torch.testing.assert_close(enc(x64), out[0].double(), atol=1e-6, rtol=0)
+    assert torch.autograd.gradcheck(enc, (x64,)) and torch.autograd.gradgradcheck(enc, (x64,))
+    with pytest.raises(ValueError, match="expects torch.float64 positions"):
+        enc(x)
+    enc.bfloat16()
+    with pytest.raises(ValueError, match=r"params are torch.bfloat16.*\.float\(\)"):
+        enc(x)
+    enc.float()
+    p = x.reshape(35, 3).requires_grad_(True)
+    (g,) = torch.autograd.grad(enc(p).square().sum(), p, create_graph=True)
+    with pytest.raises(RuntimeError, match="differentiable once"):
+        torch.autograd.grad(g.sum(), enc.params)
