@@ -23,6 +23,7 @@ import warp.geometry  # noqa: F401  (registers wp.geometry)
 
 from ngp_warp import _wp
 from ngp_warp.kernels import export as K
+from ngp_warp.memory_estimate import available_bytes
 from ngp_warp.occupancy import OccupancyGrid
 
 SigmaFn = Callable[[torch.Tensor], torch.Tensor]
@@ -177,6 +178,18 @@ def _check_similarity(world_from_scene) -> None:
         raise ValueError("world_from_scene must be a similarity (scaled rotation and translation)")
 
 
+MESH_BYTES_PER_NODE = 16  # σ (float32) and marching cubes' per-cell counts and offsets
+
+
+def _check_mesh_fits(shape: tuple[int, int, int], device: torch.device) -> None:
+    """ValueError (one line) when a density grid of ``shape`` nodes and its marching cubes would
+    not fit in the memory free on ``device``."""
+    need, free = math.prod(shape) * MESH_BYTES_PER_NODE, available_bytes(device)
+    if need > free:
+        raise ValueError(f"a {shape[0]}×{shape[1]}×{shape[2]} density grid needs about {need / 1e9:.3g} GB but "
+                         f"{device} has {free / 1e9:.3g} GB free: lower the resolution")
+
+
 def extract_mesh(sigma_fn: SigmaFn, color_fn: ColorFn, aabb: torch.Tensor, *, threshold: float,
                  resolution: int = 256, grid: OccupancyGrid | None = None,
                  world_from_scene: torch.Tensor | None = None, chunk: int = 1 << 18) -> Mesh:
@@ -205,7 +218,9 @@ def extract_mesh(sigma_fn: SigmaFn, color_fn: ColorFn, aabb: torch.Tensor, *, th
         raise ValueError(f"threshold must be a positive number, got {threshold!r}")
     _check_similarity(world_from_scene)
     box = occupied_box(aabb, grid)
-    field = density_grid(sigma_fn, box, grid_shape(box, resolution), aabb.device, chunk)
+    shape = grid_shape(box, resolution)
+    _check_mesh_fits(shape, aabb.device)
+    field = density_grid(sigma_fn, box, shape, aabb.device, chunk)
     vertices, faces = marching_cubes(field, threshold, box)
     if grid is not None and faces.shape[0] > 0:
         vertices, faces = crop_to_occupied(vertices, faces, grid)

@@ -102,6 +102,18 @@ def test_similarity_maps_vertices_and_keeps_faces_outward():
                      world_from_scene=torch.diag(torch.tensor([1.0, 2.0, 1.0, 1.0])))
 
 
+def test_a_mesh_too_large_for_memory_is_refused_before_sampling():
+    calls = []
+
+    def sigma(x):
+        calls.append(x.shape[0])
+        return analytic_sigma(x)
+
+    with pytest.raises(ValueError, match=r"100000×100000×100000 density grid needs about 1.6e\+07 GB .*lower the resolution"):
+        extract_mesh(sigma, analytic_albedo, BOX, threshold=THRESHOLD, resolution=100_000)
+    assert calls == []
+
+
 def test_occupancy_crop_drops_triangles_in_empty_cells():
     grid = OccupancyGrid(BOX, resolution=16)
     occupied = torch.zeros(1, 16, 16, 16, dtype=torch.bool)
