@@ -9,6 +9,11 @@ from __future__ import annotations
 import torch
 
 
+SECOND_DERIVATIVE = ("{op}'s backward is a hand-written Warp kernel, differentiable once: a second derivative "
+                     "through it is not supported (float64 inputs run the pure-torch twin, which is differentiable "
+                     "to any order)")
+
+
 class _Refused(torch.autograd.Function):
     """Identity on the gradients; its own backward raises (one line naming the op)."""
 
@@ -19,9 +24,7 @@ class _Refused(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *_):
-        raise RuntimeError(f"{ctx.op}'s backward is a hand-written Warp kernel, differentiable once: a second "
-                           f"derivative through it is not supported (float64 inputs run the pure-torch twin, "
-                           f"which is differentiable to any order)")
+        raise RuntimeError(SECOND_DERIVATIVE.format(op=ctx.op))
 
 
 def refuse_second_derivative(op: str, grads: tuple, sources: tuple) -> tuple:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 
 from ngp_warp import _wp
-from ngp_warp._differentiable_once import refuse_second_derivative
+from ngp_warp._differentiable_once import SECOND_DERIVATIVE, refuse_second_derivative
 from ngp_warp._reference import composite as reference
 from ngp_warp.kernels import composite as K
 
@@ -32,46 +32,121 @@ from ngp_warp.kernels import composite as K
 _BLOCK = 32
 
 
+def launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: float):
+    """The forward kernel: (rgb [N, 3], opacity [N], depth [N], weights [S], trans [S]) float32,
+    the transmittance in front of each sample kept for the backward."""
+    n_rays, n_samples = ray_offsets.shape[0] - 1, sigmas.shape[0]
+    dev = sigmas.device
+    rgb = torch.empty(n_rays, 3, dtype=torch.float32, device=dev)
+    opacity = torch.empty(n_rays, dtype=torch.float32, device=dev)
+    depth = torch.empty(n_rays, dtype=torch.float32, device=dev)
+    trans = torch.empty(n_samples, dtype=torch.float32, device=dev)
+    weights = torch.zeros(n_samples, dtype=torch.float32, device=dev)  # padding rows stay 0
+    _wp.launch(
+        K.composite_forward, n_rays,
+        [sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps), rgb, opacity, depth, trans, weights],
+        _wp.device_of(sigmas), block_dim=_BLOCK,
+    )
+    return rgb, opacity, depth, weights, trans
+
+
+def launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights):
+    """The backward kernel: (dL/dσ [S], dL/dc [S, 3]) float32 from the gradients of rgb,
+    opacity, depth and weights (each None when absent), computed without autograd."""
+    grads = [None if g is None else g.detach().float().contiguous() for g in (g_rgb, g_opacity, g_depth, g_weights)]
+    has_grads = sum(1 << k for k, g in enumerate(grads) if g is not None)
+    # Zeros: padding rows past the last ray (see ngp_warp.prune) get no gradient.
+    grad_sigmas = torch.zeros_like(sigmas)
+    grad_rgbs = torch.zeros_like(rgbs)
+    if has_grads:
+        _wp.launch(
+            K.composite_backward, ray_offsets.shape[0] - 1,
+            [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, grad_sigmas, grad_rgbs],
+            _wp.device_of(sigmas), block_dim=_BLOCK,
+        )
+    return grad_sigmas, grad_rgbs
+
+
 class _Composite(torch.autograd.Function):
-    """Compositing with the Warp forward and hand-written backward kernels."""
+    """Compositing with the Warp forward and hand-written backward kernels (the training path;
+    the public :func:`composite` goes through the torch.library op of :mod:`ngp_warp.library`,
+    which costs tens of microseconds more per call on the host)."""
 
     @staticmethod
     def forward(ctx, sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: float):
-        n_rays, n_samples = ray_offsets.shape[0] - 1, sigmas.shape[0]
-        dev = sigmas.device
-        rgb = torch.empty(n_rays, 3, dtype=torch.float32, device=dev)
-        opacity = torch.empty(n_rays, dtype=torch.float32, device=dev)
-        depth = torch.empty(n_rays, dtype=torch.float32, device=dev)
-        trans = torch.empty(n_samples, dtype=torch.float32, device=dev)
-        weights = torch.zeros(n_samples, dtype=torch.float32, device=dev)  # padding rows stay 0
-        _wp.launch(
-            K.composite_forward, n_rays,
-            [sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps), rgb, opacity, depth, trans, weights],
-            _wp.device_of(sigmas), block_dim=_BLOCK,
-        )
+        rgb, opacity, depth, weights, trans = launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets,
+                                                             early_stop_eps)
         ctx.save_for_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans)
         ctx.set_materialize_grads(False)
         return rgb, opacity, depth, weights
 
     @staticmethod
     def backward(ctx, g_rgb, g_opacity, g_depth, g_weights):
-        sigmas, rgbs, t_starts, t_ends, ray_offsets, trans = ctx.saved_tensors  # checks for in-place changes
+        saved = ctx.saved_tensors  # checks for in-place changes
         incoming = (g_rgb, g_opacity, g_depth, g_weights)
-        grads = [None if g is None else g.detach().float().contiguous() for g in incoming]
-        has_grads = sum(1 << k for k, g in enumerate(grads) if g is not None)
-        if has_grads == 0:
+        if all(g is None for g in incoming):
             return None, None, None, None, None, None
-        # Zeros: padding rows past the last ray (see ngp_warp.prune) get no gradient.
-        grad_sigmas = torch.zeros_like(sigmas)
-        grad_rgbs = torch.zeros_like(rgbs)
-        _wp.launch(
-            K.composite_backward, ray_offsets.shape[0] - 1,
-            [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, grad_sigmas, grad_rgbs],
-            _wp.device_of(sigmas), block_dim=_BLOCK,
-        )
+        grad_sigmas, grad_rgbs = launch_backward(*saved, *incoming)
         grad_sigmas, grad_rgbs = refuse_second_derivative("composite", (grad_sigmas, grad_rgbs),
-                                                          (sigmas, rgbs, *incoming))
+                                                          (saved[0], saved[1], *incoming))
         return grad_sigmas, grad_rgbs, None, None, None, None
+
+
+# The public op, registered with torch.library: opaque to torch.compile (no graph breaks, no
+# tracing into Warp), with fake (meta) kernels for shapes and a backward that refuses a second
+# derivative. The training path keeps the leaner autograd.Function above.
+@torch.library.custom_op("ngp_warp::composite", mutates_args=())
+def _composite_op(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                  ray_offsets: torch.Tensor, early_stop_eps: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
+                                                                               torch.Tensor, torch.Tensor]:
+    return launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps)
+
+
+@_composite_op.register_fake
+def _(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps):
+    n_rays, n_samples = ray_offsets.shape[0] - 1, sigmas.shape[0]
+    return (sigmas.new_empty(n_rays, 3), sigmas.new_empty(n_rays), sigmas.new_empty(n_rays),
+            sigmas.new_empty(n_samples), sigmas.new_empty(n_samples))
+
+
+@torch.library.custom_op("ngp_warp::composite_backward", mutates_args=())
+def _composite_backward_op(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                           ray_offsets: torch.Tensor, trans: torch.Tensor, g_rgb: torch.Tensor,
+                           g_opacity: torch.Tensor, g_depth: torch.Tensor,
+                           g_weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    return launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights)
+
+
+@_composite_backward_op.register_fake
+def _(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights):
+    return torch.empty_like(sigmas), torch.empty_like(rgbs)
+
+
+def _save_inputs(ctx, inputs, output):
+    ctx.save_for_backward(*inputs[:5], output[4])
+
+
+def _composite_op_backward(ctx, g_rgb, g_opacity, g_depth, g_weights, _g_trans):
+    grad_sigmas, grad_rgbs = _composite_backward_op(*ctx.saved_tensors, g_rgb, g_opacity, g_depth, g_weights)
+    return grad_sigmas, grad_rgbs, None, None, None, None
+
+
+def _refuse(ctx, *_):
+    raise RuntimeError(SECOND_DERIVATIVE.format(op="composite"))
+
+
+_composite_op.register_autograd(_composite_op_backward, setup_context=_save_inputs)
+_composite_backward_op.register_autograd(_refuse, setup_context=lambda ctx, inputs, output: None)
+
+
+@torch.library.custom_op("ngp_warp::ray_offsets", mutates_args=())
+def _ray_offsets_op(ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
+    return ray_offsets_from_indices(ray_indices, n_rays)
+
+
+@_ray_offsets_op.register_fake
+def _(ray_indices, n_rays):
+    return ray_indices.new_empty(n_rays + 1, dtype=torch.int32)
 
 
 def composite_packed(
@@ -176,18 +251,20 @@ def composite(
         raise ValueError(f"n_rays must be a non-negative int (positive when there are samples), got {n_rays!r}")
     if early_stop_eps < 0:
         raise ValueError(f"early_stop_eps must be ≥ 0, got {early_stop_eps}")
-    _wp.device_of(sigmas)
+    compiling = torch.compiler.is_compiling()
+    if not compiling and sigmas.device.type != "meta":  # meta tensors: shapes only, through the fake kernels
+        _wp.device_of(sigmas)  # CPU or CUDA only
     if n_samples == 0:  # zeros, still connected to the inputs' graph (a loss on them can backward)
         zero, dev, dtype = sigmas.sum() + rgbs.sum(), sigmas.device, sigmas.dtype
         out = tuple(torch.zeros(shape, device=dev, dtype=dtype) + zero for shape in ((n_rays, 3), n_rays, n_rays))
         return (*out, sigmas * 0) if return_weights else out
-    if validate:
+    if validate and not compiling and sigmas.device.type != "meta":  # reading the checks back is a host sync, which a compiled graph has not
         _check_values(sigmas, t_starts, t_ends, ray_indices, n_rays)
     if sigmas.dtype == torch.float64:
         out = reference.composite(sigmas, rgbs, t_starts, t_ends, ray_indices.to(torch.int64), n_rays, early_stop_eps)
         return out if return_weights else out[:3]
-    offsets = ray_offsets_from_indices(ray_indices.to(torch.int64).contiguous(), n_rays)
-    rgb, opacity, depth, weights = composite_packed(
-        sigmas.contiguous(), rgbs.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets, early_stop_eps
-    )
+    offsets = _ray_offsets_op(ray_indices.to(torch.int64).contiguous(), n_rays)
+    rgb, opacity, depth, weights, _ = _composite_op(
+        sigmas.contiguous(), rgbs.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets,
+        float(early_stop_eps))
     return (rgb, opacity, depth, weights) if return_weights else (rgb, opacity, depth)

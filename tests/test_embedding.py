@@ -160,3 +160,34 @@ def test_hash_grid_takes_batches_float64_and_names_a_bad_dtype():
     (g,) = torch.autograd.grad(enc(p).square().sum(), p, create_graph=True)
     with pytest.raises(RuntimeError, match="differentiable once"):
         torch.autograd.grad(g.sum(), enc.params)
+
+
+def test_composite_is_a_torch_library_op_that_compiles_without_graph_breaks():
+    from ngp_warp.composite import _composite_op, _ray_offsets_op
+
+    g = torch.Generator().manual_seed(3)
+    n_rays, s = 5, 40
+    ray_indices = torch.sort(torch.randint(0, n_rays, (s,), generator=g)).values
+    t0 = torch.rand(s, generator=g)
+    t1 = t0 + 0.3 * torch.rand(s, generator=g)
+    sigmas, rgbs = (torch.rand(s, generator=g) * 3).requires_grad_(True), torch.rand(s, 3, generator=g).requires_grad_(True)
+
+    def loss(sigmas, rgbs):
+        rgb, opacity, depth = composite(sigmas, rgbs, t0, t1, ray_indices, n_rays)
+        return rgb.square().sum() + opacity.sum() + 0.3 * depth.sum()
+
+    torch._dynamo.reset()
+    compiled = torch.compile(loss, fullgraph=True, backend="aot_eager")  # a graph break would raise
+    value = compiled(sigmas, rgbs)
+    grads = torch.autograd.grad(value, (sigmas, rgbs))
+    eager = loss(sigmas, rgbs)
+    torch.testing.assert_close(value, eager)
+    for a, b in zip(grads, torch.autograd.grad(eager, (sigmas, rgbs)), strict=True):
+        torch.testing.assert_close(a, b)
+    offsets = _ray_offsets_op(ray_indices, n_rays)
+    checks = torch.library.opcheck(_composite_op, (sigmas, rgbs, t0, t1, offsets, 1e-4))
+    assert set(checks.values()) == {"SUCCESS"}
+    with torch.device("meta"):  # shapes alone, through the fake kernels
+        meta = composite(torch.empty(s), torch.empty(s, 3), torch.empty(s), torch.empty(s),
+                         torch.zeros(s, dtype=torch.int64), n_rays, return_weights=True)
+    assert [tuple(t.shape) for t in meta] == [(n_rays, 3), (n_rays,), (n_rays,), (s,)]
