@@ -191,3 +191,15 @@ def test_composite_is_a_torch_library_op_that_compiles_without_graph_breaks():
         meta = composite(torch.empty(s), torch.empty(s, 3), torch.empty(s), torch.empty(s),
                          torch.zeros(s, dtype=torch.int64), n_rays, return_weights=True)
     assert [tuple(t.shape) for t in meta] == [(n_rays, 3), (n_rays,), (n_rays,), (s,)]
+
+
+def test_the_check_script_holds_on_every_case():
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("check_embedding",
+                                                  Path(__file__).parents[1] / "benchmarks" / "check_embedding.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    results = script.run("cpu")
+    assert len(results) == 6 and all(ok for _, ok, _ in results), results
