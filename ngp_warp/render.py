@@ -29,9 +29,9 @@ from collections.abc import Callable
 import torch
 
 from ngp_warp._reference import composite as reference
-from ngp_warp.composite import composite_packed
+from ngp_warp.composite import composite_packed, ray_offsets_from_indices
 from ngp_warp.occupancy import OccupancyGrid
-from ngp_warp.prune import PrunedSamples, prune_samples
+from ngp_warp.prune import prune_samples
 from ngp_warp.raymarch import MarchOptions, RaySamples, ray_marching
 
 FieldFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -68,29 +68,51 @@ def _checked(fn: Callable, name: str) -> Callable:
     return checked
 
 
-def _prune(samples, sigma_fn, grid: OccupancyGrid, early_stop_eps: float, capacity: int | None) -> PrunedSamples:
-    with torch.no_grad():
-        sigmas = sigma_fn(samples.positions)
-    n = samples.n_samples
-    _check_sigmas(sigmas, n, "sigma_fn")
-    lo, hi = grid.aabb_host[:3], grid.aabb_host[3:]
-    centre = tuple(0.5 * (a + b) for a, b in zip(lo, hi))
-    return prune_samples(samples, sigmas.reshape(n).float().contiguous(), early_stop_eps, capacity, centre)
+def _select(samples: RaySamples, keep: torch.Tensor) -> RaySamples:
+    """The samples where ``keep`` ([S] bool) holds, with their ray offsets (sizing them is a sync)."""
+    ray_indices = samples.ray_indices[keep]
+    n_rays = samples.ray_offsets.shape[0] - 1
+    offsets = (ray_offsets_from_indices(ray_indices, n_rays) if ray_indices.numel()
+               else torch.zeros(n_rays + 1, dtype=torch.int32, device=keep.device))
+    return RaySamples(ray_indices, samples.t_starts[keep], samples.t_ends[keep], samples.positions[keep],
+                      samples.directions[keep], offsets)
 
 
 def _pruned(samples: RaySamples, sigma_fn, grid: OccupancyGrid, early_stop_eps: float,
-            capacity: int | None) -> tuple[RaySamples, dict]:
-    """The samples that go to the field, and render_rays's pruning outputs (``n_marched``,
-    ``ray_mask``, ``n_contributing``)."""
+            capacity: int | None, alpha_thre: float) -> tuple[RaySamples, dict]:
+    """The samples that go to the field (those with α ≥ ``alpha_thre`` that composite), and
+    render_rays's pruning outputs (``n_marched``, ``ray_mask``, ``n_contributing``)."""
     n_rays, dev = samples.ray_offsets.shape[0] - 1, samples.ray_offsets.device
     extra = {"n_marched": samples.n_samples}
     if samples.n_samples > 0:
-        pruned = _prune(samples, sigma_fn, grid, early_stop_eps, capacity)
+        with torch.no_grad():
+            sigmas = sigma_fn(samples.positions)
+        _check_sigmas(sigmas, samples.n_samples, "sigma_fn")
+        sigmas = sigmas.reshape(samples.n_samples).float()
+        if alpha_thre > 0:
+            keep = -torch.expm1(-sigmas * (samples.t_ends - samples.t_starts)) >= alpha_thre
+            samples, sigmas = _select(samples, keep), sigmas[keep]
+    if samples.n_samples > 0:
+        centre = tuple(0.5 * (a + b) for a, b in zip(grid.aabb_host[:3], grid.aabb_host[3:]))
+        pruned = prune_samples(samples, sigmas.contiguous(), early_stop_eps, capacity, centre)
         extra.update(ray_mask=pruned.ray_mask, n_contributing=pruned.n_contributing)
         return pruned.samples, extra
     extra.update(ray_mask=torch.ones(n_rays, dtype=torch.bool, device=dev),
                  n_contributing=torch.zeros(1, dtype=torch.int32, device=dev))
     return samples, extra
+
+
+def _within(samples: RaySamples, t_min: torch.Tensor | None, t_max: torch.Tensor | None) -> RaySamples:
+    """The samples whose midpoint lies in their ray's [t_min, t_max] ([N] each, None: unbounded)."""
+    if (t_min is None and t_max is None) or samples.n_samples == 0:
+        return samples
+    mid, rays = _midpoints(samples), samples.ray_indices
+    keep = torch.ones_like(mid, dtype=torch.bool)
+    if t_min is not None:
+        keep &= mid >= t_min[rays]
+    if t_max is not None:
+        keep &= mid <= t_max[rays]
+    return _select(samples, keep)
 
 
 def _midpoints(samples: RaySamples) -> torch.Tensor:
@@ -189,6 +211,25 @@ def _flat_rays(rays_o, rays_d, sample_capacity) -> tuple[torch.Tensor, torch.Ten
     return rays_o.reshape(-1, 3), rays_d.reshape(-1, 3), rays_o.shape[:-1]
 
 
+def _ray_interval(t_min, t_max, leading: torch.Size, device, sample_capacity, alpha_thre, sigma_fn):
+    """render_rays' nerfacc-style options checked: ``t_min``/``t_max`` flattened to [N] (or
+    None); one-line ValueErrors."""
+    if not 0.0 <= alpha_thre < 1.0:
+        raise ValueError(f"alpha_thre must be in [0, 1), got {alpha_thre!r}")
+    if alpha_thre > 0 and sigma_fn is None:
+        raise ValueError("alpha_thre needs a sigma_fn (the densities it thresholds)")
+    given = [t for t in (t_min, t_max) if t is not None]
+    if (given or alpha_thre > 0) and sample_capacity is not None:
+        raise ValueError("t_min, t_max and alpha_thre select samples after the march, which a fixed "
+                         "sample_capacity cannot take")
+    for name, t in (("t_min", t_min), ("t_max", t_max)):
+        if t is not None and (not isinstance(t, torch.Tensor) or t.shape != leading or t.device != device
+                              or not t.is_floating_point()):
+            raise ValueError(f"{name} must be a float tensor of shape {list(leading)} on {device}, "
+                             f"got {getattr(t, 'shape', type(t).__name__)}")
+    return tuple(None if t is None else t.reshape(-1) for t in (t_min, t_max))
+
+
 def _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images,
                            near_gradient_distance) -> None:
     """render_rays' own arguments (the march checks the rays): one-line ValueErrors."""
@@ -211,6 +252,8 @@ def render_rays(
     sigma_fn: Callable[[torch.Tensor], torch.Tensor] | None = None, sample_capacity: int | None = None,
     return_samples: bool = False, before_sync: Callable[[], None] | None = None,
     ray_images: torch.Tensor | None = None, validate: bool = True, near_gradient_distance: float = 0.0,
+    alpha_thre: float = 0.0, t_min: torch.Tensor | None = None, t_max: torch.Tensor | None = None,
+    normalize_depth: bool = False,
 ) -> dict:
     """Render rays through ``grid`` with the radiance field ``field_fn``.
 
@@ -257,6 +300,13 @@ def render_rays(
             and rendering loops whose rays and field are known good pass False.
         near_gradient_distance: > 0: each sample's σ and colour gradients are scaled by
             :math:`\\min(1, (t / \\text{this})^2)` (:func:`_near_camera_scale`).
+        alpha_thre: with ``sigma_fn``, samples whose α = 1 − exp(−σ δ) is below this are left
+            out before the field (nerfacc's ``alpha_thre``).
+        t_min, t_max: [N] float32 per-ray interval (nerfacc's): samples whose midpoint lies
+            outside their ray's [t_min, t_max] are left out (the march's own ``near``/``far``
+            must cover them).
+        normalize_depth: return depth as the expected distance Σ w t / Σ w (0 where nothing
+            is hit) instead of Σ w t.
 
     Returns:
         dict with ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] (float32, differentiable w.r.t.
@@ -271,19 +321,23 @@ def render_rays(
     if isinstance(ray_images, torch.Tensor) and ray_images.shape == leading:
         ray_images = ray_images.reshape(-1)
     _check_render_settings(rays_o, early_stop_eps, sigma_fn, sample_capacity, ray_images, near_gradient_distance)
+    t_min, t_max = _ray_interval(t_min, t_max, leading, rays_o.device, sample_capacity, alpha_thre, sigma_fn)
     samples = ray_marching(rays_o.float(), rays_d.float(), grid, march, before_sync=before_sync, validate=validate,
                            unit_directions=True)
     if validate:
         field_fn, sigma_fn = _checked(field_fn, "field_fn"), sigma_fn and _checked(sigma_fn, "sigma_fn")
     bg = _background(background, rays_o.shape[0], rays_o.device)
     extra = {}
+    samples = _within(samples, t_min, t_max)
     if sigma_fn is not None:
-        samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity)
+        samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity, alpha_thre)
     if rays_o.dtype == torch.float64 or ((rays_o.requires_grad or rays_d.requires_grad) and torch.is_grad_enabled()):
         samples = _attached(samples, rays_o, rays_d)
     rgb, opacity, depth, weights = _shade(samples, field_fn, early_stop_eps, ray_images, near_gradient_distance)
     if bg is not None:
         rgb = rgb + bg * (1.0 - opacity)[:, None]
+    if normalize_depth:
+        depth = depth / opacity.clamp_min(1e-10)
     out = {"rgb": rgb.reshape(*leading, 3), "opacity": opacity.reshape(leading), "depth": depth.reshape(leading),
            "n_samples": samples.n_samples, **extra}
     if "ray_mask" in out:

@@ -203,3 +203,58 @@ def test_the_check_script_holds_on_every_case():
     spec.loader.exec_module(script)
     results = script.run("cpu")
     assert len(results) == 6 and all(ok for _, ok, _ in results), results
+
+
+def test_nerfacc_options_alpha_thre_per_ray_interval_and_normalised_depth():
+    field, grid = ViewField(), full_grid()
+    rays_o, rays_d = rays(32)
+    sigma_fn = lambda x: field(x, x)[0]  # noqa: E731
+    plain = render_rays(rays_o, rays_d, grid, field, MARCH, sigma_fn=sigma_fn, return_samples=True)
+    thresholded = render_rays(rays_o, rays_d, grid, field, MARCH, sigma_fn=sigma_fn, alpha_thre=0.05,
+                              return_samples=True)
+    dt = thresholded["t_ends"] - thresholded["t_starts"]
+    assert thresholded["n_samples"] < plain["n_samples"]
+    kept_alpha = -torch.expm1(-field(rays_o[thresholded["ray_indices"]] + rays_d[thresholded["ray_indices"]]
+                                     * (thresholded["t_starts"] + thresholded["t_ends"])[:, None] / 2,
+                                     rays_d[thresholded["ray_indices"]])[0] * dt)
+    assert kept_alpha.min() >= 0.05 - 1e-4
+    t_min, t_max = torch.full((32,), 2.6), torch.full((32,), 3.2)
+    cut = render_rays(rays_o, rays_d, grid, field, MARCH, t_min=t_min, t_max=t_max, return_samples=True)
+    mid = (cut["t_starts"] + cut["t_ends"]) / 2
+    assert cut["n_samples"] > 0 and mid.min() >= 2.6 and mid.max() <= 3.2
+    normalised = render_rays(rays_o, rays_d, grid, field, MARCH, normalize_depth=True)
+    torch.testing.assert_close(normalised["depth"], plain["depth"] / plain["opacity"], rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="alpha_thre needs a sigma_fn"):
+        render_rays(rays_o, rays_d, grid, field, MARCH, alpha_thre=0.1)
+    with pytest.raises(ValueError, match="t_min must be a float tensor of shape"):
+        render_rays(rays_o, rays_d, grid, field, MARCH, t_min=torch.zeros(3))
+
+
+def test_nerfacc_helpers_match_the_composite():
+    from ngp_warp.volume_rendering import accumulate_along_rays, alphas_and_transmittance, rendering
+
+    g = torch.Generator().manual_seed(4)
+    n_rays, s = 6, 50
+    ray_indices = torch.sort(torch.randint(1, n_rays, (s,), generator=g)).values  # ray 0 has none
+    t0 = torch.rand(s, generator=g)
+    t1 = t0 + 0.2 * torch.rand(s, generator=g)
+    sigmas, rgbs = (4 * torch.rand(s, generator=g)).requires_grad_(True), torch.rand(s, 3, generator=g)
+    rgb, opacity, depth, weights = composite(sigmas, rgbs, t0, t1, ray_indices, n_rays, return_weights=True)
+    alphas, trans = alphas_and_transmittance(sigmas, t0, t1, ray_indices, n_rays)
+    torch.testing.assert_close(trans * alphas, weights, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(accumulate_along_rays(weights, rgbs, ray_indices, n_rays), rgb, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(accumulate_along_rays(weights, None, ray_indices, n_rays)[:, 0], opacity)
+    (g_ours,) = torch.autograd.grad((trans * alphas).square().sum(), sigmas)
+    (g_kernel,) = torch.autograd.grad(weights.square().sum(), sigmas)
+    torch.testing.assert_close(g_ours, g_kernel, rtol=1e-4, atol=1e-6)
+    seen = {}
+
+    def rgb_sigma_fn(t_starts, t_ends, rays):
+        seen.update(t_starts=t_starts, rays=rays)
+        return rgbs, sigmas
+
+    colours, opacities, depths, extras = rendering(t0, t1, ray_indices, n_rays, rgb_sigma_fn,
+                                                   render_bkgd=torch.ones(3))
+    assert seen["t_starts"] is t0 and seen["rays"] is ray_indices
+    torch.testing.assert_close(colours, rgb + (1 - opacity[:, None]))
+    assert opacities.shape == depths.shape == (n_rays, 1) and set(extras) == {"weights", "alphas", "trans"}
