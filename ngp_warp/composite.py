@@ -21,6 +21,7 @@ to any order, e.g. for ``torch.autograd.gradcheck``.
 from __future__ import annotations
 
 import torch
+from torch.fx.experimental.symbolic_shapes import guard_or_false
 
 from ngp_warp import _wp
 from ngp_warp._differentiable_once import SECOND_DERIVATIVE, refuse_second_derivative
@@ -168,7 +169,9 @@ def composite_packed(
 
 
 def ray_offsets_from_indices(ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
-    """[S] int64 sorted ray indices (S ≥ 1) → [n_rays + 1] int32 offsets, on the device, no sync."""
+    """[S] int64 sorted ray indices → [n_rays + 1] int32 offsets, on the device, no sync."""
+    if ray_indices.shape[0] == 0:
+        return torch.zeros(n_rays + 1, dtype=torch.int32, device=ray_indices.device)
     offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=ray_indices.device)
     _wp.launch(
         K.offsets_from_indices, ray_indices.shape[0], [ray_indices, ray_indices.shape[0], n_rays, offsets],
@@ -254,7 +257,8 @@ def composite(
     compiling = torch.compiler.is_compiling()
     if not compiling and sigmas.device.type != "meta":  # meta tensors: shapes only, through the fake kernels
         _wp.device_of(sigmas)  # CPU or CUDA only
-    if n_samples == 0:  # zeros, still connected to the inputs' graph (a loss on them can backward)
+    if guard_or_false(n_samples == 0):  # zeros, still in the inputs' graph (a loss on them can backward);
+        # a count known only when the graph runs (a compiled march's) takes the op, which handles 0
         zero, dev, dtype = sigmas.sum() + rgbs.sum(), sigmas.device, sigmas.dtype
         out = tuple(torch.zeros(shape, device=dev, dtype=dtype) + zero for shape in ((n_rays, 3), n_rays, n_rays))
         return (*out, sigmas * 0) if return_weights else out

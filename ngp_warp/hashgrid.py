@@ -18,7 +18,8 @@ import torch
 import warp as wp
 
 from ngp_warp import _wp
-from ngp_warp._differentiable_once import refuse_second_derivative
+from ngp_warp.hashgrid_autograd import HashGridFunction, aligned, compiled_encode
+from ngp_warp.op_registry import register
 from ngp_warp._reference import hashgrid as reference
 from ngp_warp.kernels import hashgrid as K
 from ngp_warp.kernels.hashgrid_native import half_vec_type, vec_type
@@ -80,32 +81,6 @@ def _scale_for(desired_resolution: float, base_resolution: int, n_levels: int, p
     if n_levels == 1:
         return 1.0
     return math.exp((math.log(desired_resolution) - math.log(base_resolution)) / (n_levels - 1))
-
-
-class _HashGridFunction(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, params, enc):
-        ctx.enc = enc
-        ctx.save_for_backward(x, params)
-        return enc._encode(x, params)
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        x, params = ctx.saved_tensors
-        enc = ctx.enc
-        need_x, need_params = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        grad = _aligned(grad_out.detach().contiguous())
-        with torch.no_grad():
-            grad_x = enc._grad_x(x, params, grad) if need_x else None
-            grad_params = enc._grad_params(x, grad) if need_params else None
-        grad_x, grad_params = refuse_second_derivative("HashGridEncoding", (grad_x, grad_params),
-                                                       (x, params, grad_out))
-        return grad_x, grad_params, None
-
-
-def _aligned(t: torch.Tensor) -> torch.Tensor:
-    """``t`` itself when 16-byte aligned (the kernels use vector loads), else an aligned copy."""
-    return t if t.data_ptr() % 16 == 0 else t.clone()
 
 
 class HashGridEncoding(torch.nn.Module):
@@ -249,10 +224,15 @@ class HashGridEncoding(torch.nn.Module):
         self.register_buffer("_scales", scales, persistent=False)
         self.register_buffer("_meta", torch.tensor(meta, dtype=torch.int32, device=device), persistent=False)
         self._wp_meta: dict = {}
+        register(self)
 
     def __getstate__(self):
         # the cached Warp views hold raw pointers: rebuilt on demand after copy / pickle
         return {**super().__getstate__(), "_wp_meta": {}}
+
+    def __setstate__(self, state):
+        super().__setstate__(state)
+        register(self)
 
     @classmethod
     def from_finest_resolution(
@@ -280,8 +260,10 @@ class HashGridEncoding(torch.nn.Module):
         flat = self._check_points(x)
         if self.params.dtype == torch.float64:
             out = reference.encode_like(self, flat, exact=True)
+        elif torch.compiler.is_compiling():  # the torch.library op: no graph break
+            out = compiled_encode(self, flat.contiguous(), self.params)
         else:
-            out = _HashGridFunction.apply(flat.contiguous(), self.params, self)
+            out = HashGridFunction.apply(flat.contiguous(), self.params, self)
         return out.reshape(*x.shape[:-1], out.shape[-1])
 
     @torch.no_grad()
@@ -312,7 +294,7 @@ class HashGridEncoding(torch.nn.Module):
         if x.device != self.params.device:
             raise ValueError(f"x is on {x.device} but the encoding's params are on {self.params.device}")
         x = x.reshape(-1, self.n_input_dims)
-        if x.dtype == torch.float64:
+        if x.dtype == torch.float64 or torch.compiler.is_compiling():
             return x
         n = x.shape[0]
         config = self._kernels(_wp.device_of(x)).config  # (CPU or CUDA only)
@@ -368,7 +350,7 @@ class HashGridEncoding(torch.nn.Module):
         _wp.launch(
             kernel,
             self._n_items(k.config, n),
-            [n, L, _wp.to_wp(x.reshape(-1)), self._entries(_aligned(params.detach())), scales, meta, target],
+            [n, L, _wp.to_wp(x.reshape(-1)), self._entries(aligned(params.detach())), scales, meta, target],
             device,
         )
         return out
@@ -410,7 +392,7 @@ class HashGridEncoding(torch.nn.Module):
         _wp.launch(
             k.backward_x,
             n if GX == 0 else -(-L // GX) * n,
-            [n, L, _wp.to_wp(x.reshape(-1)), self._entries(_aligned(params.detach())), scales, meta,
+            [n, L, _wp.to_wp(x.reshape(-1)), self._entries(aligned(params.detach())), scales, meta,
              self._entries(grad_out), _wp.to_wp(grad_x.reshape(-1))],
             device,
         )

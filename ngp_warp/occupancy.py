@@ -30,6 +30,7 @@ from ngp_warp import _wp
 from ngp_warp._checks import check_aabb_values
 from ngp_warp.contraction import KINDS, uncontract
 from ngp_warp.kernels import occupancy as K
+from ngp_warp.op_registry import register
 
 _MAX_LEVELS = 16
 _MAX_MIPS = 4  # the march jumps over empty blocks of up to 16³ cells
@@ -85,6 +86,7 @@ class OccupancyGrid(nn.Module):
 
     def __init__(self, aabb, resolution: int = 128, levels: int = 1, contraction: str | None = None):
         super().__init__()
+        register(self)  # the compiled march names its grid by number
         if contraction is not None and contraction not in KINDS:
             raise ValueError(f"contraction must be None or one of {sorted(KINDS)}, got {contraction!r}")
         if contraction is not None and levels != 1:
@@ -121,6 +123,11 @@ class OccupancyGrid(nn.Module):
         # -1 where none) over the ranks, in place, so that every rank's grid stays the same
         self.merge_samples: Callable[[torch.Tensor], None] | None = None
         self.register_load_state_dict_post_hook(lambda module, _keys: module._sync_host_aabb())
+
+
+    def __setstate__(self, state):  # copies and unpickled grids are known to the compiled march too
+        super().__setstate__(state)
+        register(self)
 
     def _sync_host_aabb(self) -> None:
         self._aabb_host = _parse_aabb(self.aabb)

@@ -45,6 +45,7 @@ from ngp_warp.contraction import KINDS
 from ngp_warp.kernels import raymarch as K
 from ngp_warp.kernels import raymarch_funcs as KF
 from ngp_warp.occupancy import OccupancyGrid, host_seed
+from ngp_warp.raymarch_op import march_op
 
 _NO_CAP = 2**31 - 1
 
@@ -283,6 +284,10 @@ def ray_marching(
     """
     _check_rays(rays_o, rays_d, grid)
     rays_o, rays_d = (t.detach().reshape(-1, 3).contiguous() for t in (rays_o, rays_d))
+    if torch.compiler.is_compiling():  # the torch.library op: no graph break
+        return RaySamples(*march_op(rays_o, rays_d, id(grid), float(march.near), float(march.far), march.step_size,
+                                    float(march.cone_angle), march.max_step, bool(march.stratified),
+                                    march.max_samples_per_ray, march.max_samples))
     step, max_step, cap = _march_steps(march, grid)
     if capacity is not None and (type(capacity) is not int or capacity < 1):
         raise ValueError(f"capacity must be None or an int ≥ 1, got {capacity!r}")

@@ -6,7 +6,7 @@ graph. Each case against a pure-torch float64 pipeline on the same samples."""
 import pytest
 import torch
 
-from ngp_warp import HashGridEncoding, MarchOptions, OccupancyGrid, composite, render_rays
+from ngp_warp import HashGridEncoding, MarchOptions, OccupancyGrid, composite, ray_marching, render_rays
 from ngp_warp._reference import composite as composite_ref
 
 AABB = torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
@@ -258,3 +258,53 @@ def test_nerfacc_helpers_match_the_composite():
     assert seen["t_starts"] is t0 and seen["rays"] is ray_indices
     torch.testing.assert_close(colours, rgb + (1 - opacity[:, None]))
     assert opacities.shape == depths.shape == (n_rays, 1) and set(extras) == {"weights", "alphas", "trans"}
+
+
+def test_the_encoding_compiles_without_graph_breaks():
+    import copy
+
+    from ngp_warp.hashgrid_autograd import _encode_op
+
+    enc = HashGridEncoding(n_levels=4, log2_hashmap_size=8, base_resolution=4)
+    with torch.no_grad():
+        enc.params.uniform_(-1, 1)
+    enc = copy.deepcopy(enc)  # a copy is known to the op too
+    x = torch.rand(50, 3, requires_grad=True)
+
+    def loss(x):
+        return enc(x).square().sum()
+
+    torch._dynamo.reset()
+    value = torch.compile(loss, fullgraph=True, backend="aot_eager")(x)
+    grads = torch.autograd.grad(value, (x, enc.params))
+    eager = loss(x)
+    torch.testing.assert_close(value, eager)
+    for a, b in zip(grads, torch.autograd.grad(eager, (x, enc.params)), strict=True):
+        torch.testing.assert_close(a, b)
+    checks = torch.library.opcheck(_encode_op, (x, enc.params, id(enc)))
+    assert set(checks.values()) == {"SUCCESS"}
+
+
+def test_march_and_composite_compile_into_one_graph():
+    import copy
+
+    grid = copy.deepcopy(full_grid())  # a copy is known to the op too
+    rays_o, rays_d = rays(16)
+    density = torch.tensor(3.0, requires_grad=True)
+
+    def loss(o, d):
+        s = ray_marching(o, d, grid, MARCH, validate=False)
+        sigmas = density * torch.exp(-s.positions.square().sum(-1))
+        rgb, _, _ = composite(sigmas, torch.sigmoid(s.positions), s.t_starts, s.t_ends, s.ray_indices, 16,
+                              validate=False)
+        return rgb.sum()
+
+    torch._dynamo.reset()
+    compiled = torch.compile(loss, fullgraph=True, backend="aot_eager")
+    for d in (rays_d, -rays_d):  # the second batch misses the box: no sample at all
+        value = compiled(rays_o, d)
+        torch.testing.assert_close(value, loss(rays_o, d))
+    value = compiled(rays_o, rays_d)
+    (grad,) = torch.autograd.grad(value, density)
+    torch.testing.assert_close(grad, torch.autograd.grad(loss(rays_o, rays_d), density)[0])
+    assert value > 0 and grad > 0

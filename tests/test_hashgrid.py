@@ -199,9 +199,9 @@ def test_gradcheck_params_and_x():
 
 
 def encode_fn(enc, x, params):
-    from ngp_warp.hashgrid import _HashGridFunction
+    from ngp_warp.hashgrid_autograd import HashGridFunction
 
-    return _HashGridFunction.apply(x, params, enc)
+    return HashGridFunction.apply(x, params, enc)
 
 
 def test_empty_batch():
