@@ -264,7 +264,7 @@ class HashGridEncoding(torch.nn.Module):
             out = compiled_encode(self, flat.contiguous(), self.params)
         else:
             out = HashGridFunction.apply(flat.contiguous(), self.params, self)
-        return out.reshape(*x.shape[:-1], out.shape[-1])
+        return out if x.dim() == 2 else out.reshape(*x.shape[:-1], out.shape[-1])
 
     @torch.no_grad()
     def encode(self, x: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
@@ -293,7 +293,8 @@ class HashGridEncoding(torch.nn.Module):
             raise ValueError(f"HashGridEncoding expects {self.params.dtype} positions like its params, got {x.dtype}")
         if x.device != self.params.device:
             raise ValueError(f"x is on {x.device} but the encoding's params are on {self.params.device}")
-        x = x.reshape(-1, self.n_input_dims)
+        if x.dim() != 2:
+            x = x.reshape(-1, self.n_input_dims)
         if x.dtype == torch.float64 or torch.compiler.is_compiling():
             return x
         n = x.shape[0]

@@ -25,12 +25,13 @@ class HashGridFunction(torch.autograd.Function):
         x, params = ctx.saved_tensors
         enc = ctx.enc
         need_x, need_params = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        grad = aligned(grad_out.detach().contiguous())
-        with torch.no_grad():
-            grad_x = enc._grad_x(x, params, grad) if need_x else None
-            grad_params = enc._grad_params(x, grad) if need_params else None
-        grad_x, grad_params = refuse_second_derivative("HashGridEncoding", (grad_x, grad_params),
-                                                       (x, params, grad_out))
+        if torch.is_grad_enabled():  # create_graph: the kernels' results are tied, and refuse a second derivative
+            with torch.no_grad():
+                grads = HashGridFunction.backward(ctx, grad_out)[:2]
+            return (*refuse_second_derivative("HashGridEncoding", grads, (x, params, grad_out)), None)
+        grad = aligned(grad_out.contiguous())
+        grad_x = enc._grad_x(x, params, grad) if need_x else None
+        grad_params = enc._grad_params(x, grad) if need_params else None
         return grad_x, grad_params, None
 
 

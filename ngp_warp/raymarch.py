@@ -283,9 +283,10 @@ def ray_marching(
         :class:`RaySamples`.
     """
     _check_rays(rays_o, rays_d, grid)
-    rays_o, rays_d = (t.detach().reshape(-1, 3).contiguous() for t in (rays_o, rays_d))
+    if rays_o.dim() != 2 or not (rays_o.is_contiguous() and rays_d.is_contiguous()):  # [..., 3], any strides
+        rays_o, rays_d = (t.reshape(-1, 3).contiguous() for t in (rays_o, rays_d))
     if torch.compiler.is_compiling():  # the torch.library op: no graph break
-        return RaySamples(*march_op(rays_o, rays_d, id(grid), float(march.near), float(march.far), march.step_size,
+        return RaySamples(*march_op(rays_o.detach(), rays_d.detach(), id(grid), float(march.near), float(march.far), march.step_size,
                                     float(march.cone_angle), march.max_step, bool(march.stratified),
                                     march.max_samples_per_ray, march.max_samples))
     step, max_step, cap = _march_steps(march, grid)
