@@ -18,9 +18,12 @@ class _Refused(torch.autograd.Function):
     """Identity on the gradients; its own backward raises (one line naming the op)."""
 
     @staticmethod
-    def forward(ctx, op: str, n_grads: int, *tensors):
-        ctx.op = op
+    def forward(op: str, n_grads: int, *tensors):
         return tuple(t.clone() for t in tensors[:n_grads])
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):  # the torch.func style, so that its transforms take it
+        ctx.op = inputs[0]
 
     @staticmethod
     def backward(ctx, *_):

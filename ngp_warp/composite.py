@@ -21,6 +21,7 @@ to any order, e.g. for ``torch.autograd.gradcheck``.
 from __future__ import annotations
 
 import torch
+from torch._C import _functorch
 from torch.fx.experimental.symbolic_shapes import guard_or_false
 
 from ngp_warp import _wp
@@ -33,9 +34,21 @@ from ngp_warp.kernels import composite as K
 _BLOCK = 32
 
 
+def _plain(t: torch.Tensor | None) -> torch.Tensor | None:
+    """``t`` without torch.func's gradient-tracking wrappers (a Warp launch needs storage);
+    ValueError for a vmapped (batched) tensor, whose extra dimension the kernels would misread."""
+    while t is not None and _functorch.is_functorch_wrapped_tensor(t):
+        if _functorch.is_batchedtensor(t):
+            raise ValueError("composite's Warp backward cannot be vmapped (torch.func.jacrev, jacfwd, vmap of a "
+                             "gradient): use torch.func.grad per output, or float64 inputs (the pure-torch twin)")
+        t = _functorch.get_unwrapped(t)
+    return t
+
+
 def launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: float):
     """The forward kernel: (rgb [N, 3], opacity [N], depth [N], weights [S], trans [S]) float32,
     the transmittance in front of each sample kept for the backward."""
+    sigmas, rgbs, t_starts, t_ends, ray_offsets = map(_plain, (sigmas, rgbs, t_starts, t_ends, ray_offsets))
     n_rays, n_samples = ray_offsets.shape[0] - 1, sigmas.shape[0]
     dev = sigmas.device
     rgb = torch.empty(n_rays, 3, dtype=torch.float32, device=dev)
@@ -54,35 +67,58 @@ def launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: 
 def launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights):
     """The backward kernel: (dL/dσ [S], dL/dc [S, 3]) float32 from the gradients of rgb,
     opacity, depth and weights (each None when absent), computed without autograd."""
-    grads = [None if g is None else g.detach().float().contiguous() for g in (g_rgb, g_opacity, g_depth, g_weights)]
+    sigmas, rgbs, t_starts, t_ends, ray_offsets, trans = map(_plain, (sigmas, rgbs, t_starts, t_ends, ray_offsets,
+                                                                       trans))
+    grads = [None if g is None else _plain(g.detach().float().contiguous()) for g in (g_rgb, g_opacity, g_depth,
+                                                                                       g_weights)]
     has_grads = sum(1 << k for k, g in enumerate(grads) if g is not None)
-    # Zeros: padding rows past the last ray (see ngp_warp.prune) get no gradient.
-    grad_sigmas = torch.zeros_like(sigmas)
-    grad_rgbs = torch.zeros_like(rgbs)
+    # Zeros: padding rows past the last ray (see ngp_warp.prune) get no gradient. (Under
+    # torch.func.grad new tensors come wrapped too: the kernel writes through to their storage.)
+    grad_sigmas, grad_rgbs = torch.zeros_like(sigmas), torch.zeros_like(rgbs)
     if has_grads:
         _wp.launch(
             K.composite_backward, ray_offsets.shape[0] - 1,
-            [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, grad_sigmas, grad_rgbs],
+            [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, _plain(grad_sigmas),
+             _plain(grad_rgbs)],
             _wp.device_of(sigmas), block_dim=_BLOCK,
         )
     return grad_sigmas, grad_rgbs
 
 
+def _loop_vmap(apply, info, in_dims, args):
+    """A ``torch.func.vmap`` rule that calls ``apply`` once per batch entry and stacks the
+    outputs along dimension 0."""
+    outputs = []
+    for k in range(info.batch_size):
+        outputs.append(apply(*[a.select(d, k) if d is not None else a for a, d in zip(args, in_dims)]))
+    stacked = tuple(torch.stack(parts) for parts in zip(*outputs))
+    return stacked, (0,) * len(stacked)
+
+
 class _Composite(torch.autograd.Function):
-    """Compositing with the Warp forward and hand-written backward kernels (the training path;
-    the public :func:`composite` goes through the torch.library op of :mod:`ngp_warp.library`,
-    which costs tens of microseconds more per call on the host)."""
+    """Compositing with the Warp forward and hand-written backward kernels, for eager calls
+    (``torch.compile`` and meta tensors take the torch.library op below, which costs tens of
+    microseconds more per call on the host). Forward returns ``trans`` as a fifth,
+    non-differentiable output, kept for the backward."""
 
     @staticmethod
-    def forward(ctx, sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: float):
-        rgb, opacity, depth, weights, trans = launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets,
-                                                             early_stop_eps)
-        ctx.save_for_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans)
+    def forward(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: float):
+        return launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):  # the torch.func style: grad and jvp-free transforms work
+        ctx.save_for_backward(*inputs[:5], output[4])
+        ctx.mark_non_differentiable(output[4])
         ctx.set_materialize_grads(False)
-        return rgb, opacity, depth, weights
 
     @staticmethod
-    def backward(ctx, g_rgb, g_opacity, g_depth, g_weights):
+    def vmap(info, in_dims, sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps):
+        """A batch of sample sets, one call each (the kernels take one set)."""
+        return _loop_vmap(_Composite.apply, info, in_dims, (sigmas, rgbs, t_starts, t_ends, ray_offsets,
+                                                            early_stop_eps))
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_opacity, g_depth, g_weights, _g_trans):
         saved = ctx.saved_tensors  # checks for in-place changes
         incoming = (g_rgb, g_opacity, g_depth, g_weights)
         if all(g is None for g in incoming):
@@ -93,9 +129,9 @@ class _Composite(torch.autograd.Function):
         return grad_sigmas, grad_rgbs, None, None, None, None
 
 
-# The public op, registered with torch.library: opaque to torch.compile (no graph breaks, no
-# tracing into Warp), with fake (meta) kernels for shapes and a backward that refuses a second
-# derivative. The training path keeps the leaner autograd.Function above.
+# The op as torch.compile and meta tensors see it, registered with torch.library: opaque (no
+# graph breaks, no tracing into Warp), fake kernels for shapes, a backward that refuses a second
+# derivative. Eager calls keep the leaner autograd.Function above.
 @torch.library.custom_op("ngp_warp::composite", mutates_args=())
 def _composite_op(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
                   ray_offsets: torch.Tensor, early_stop_eps: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
@@ -165,7 +201,7 @@ def composite_packed(
     Returns ``(rgb [n_rays, 3], opacity [n_rays], depth [n_rays], weights [S])``, all
     differentiable w.r.t. ``sigmas`` and ``rgbs``.
     """
-    return _Composite.apply(sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps))
+    return _Composite.apply(sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps))[:4]
 
 
 def ray_offsets_from_indices(ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
@@ -267,8 +303,12 @@ def composite(
     if sigmas.dtype == torch.float64:
         out = reference.composite(sigmas, rgbs, t_starts, t_ends, ray_indices.to(torch.int64), n_rays, early_stop_eps)
         return out if return_weights else out[:3]
-    offsets = _ray_offsets_op(ray_indices.to(torch.int64).contiguous(), n_rays)
-    rgb, opacity, depth, weights, _ = _composite_op(
-        sigmas.contiguous(), rgbs.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets,
-        float(early_stop_eps))
+    parts = (sigmas.contiguous(), rgbs.contiguous(), t_starts.contiguous(), t_ends.contiguous())
+    if compiling or sigmas.device.type == "meta":  # the torch.library ops: traced, or shapes only
+        offsets = _ray_offsets_op(ray_indices.to(torch.int64).contiguous(), n_rays)
+        rgb, opacity, depth, weights, _ = _composite_op(*parts, offsets, float(early_stop_eps))
+    else:  # eager: the autograd Function (less host time; torch.func transforms, hence torch's search)
+        queries = torch.arange(n_rays + 1, device=ray_indices.device, dtype=ray_indices.dtype)
+        offsets = torch.searchsorted(ray_indices.contiguous(), queries, out_int32=True)
+        rgb, opacity, depth, weights = composite_packed(*parts, offsets, early_stop_eps)
     return (rgb, opacity, depth, weights) if return_weights else (rgb, opacity, depth)

@@ -308,3 +308,29 @@ def test_march_and_composite_compile_into_one_graph():
     (grad,) = torch.autograd.grad(value, density)
     torch.testing.assert_close(grad, torch.autograd.grad(loss(rays_o, rays_d), density)[0])
     assert value > 0 and grad > 0
+
+
+def test_torch_func_grad_and_vmap_take_the_composite_and_jacrev_is_refused_in_one_line():
+    g = torch.Generator().manual_seed(5)
+    n_rays, s = 3, 12
+    ray_indices = torch.sort(torch.randint(0, n_rays, (s,), generator=g)).values
+    t0 = torch.rand(s, generator=g)
+    t1 = t0 + 0.3 * torch.rand(s, generator=g)
+    sigmas, rgbs = torch.rand(s, generator=g), torch.rand(s, 3, generator=g)
+
+    def opacity(x):
+        return composite(x, rgbs, t0, t1, ray_indices, n_rays, validate=False)[1]
+
+    x = sigmas.clone().requires_grad_(True)
+    torch.testing.assert_close(torch.func.grad(lambda x: opacity(x).square().sum())(sigmas),
+                               torch.autograd.grad(opacity(x).square().sum(), x)[0])
+    batch = torch.rand(4, s, generator=g)
+    stacked = torch.vmap(opacity)(batch)
+    assert stacked.shape == (4, n_rays)
+    for k in range(4):
+        torch.testing.assert_close(stacked[k], opacity(batch[k]))
+    with pytest.raises(ValueError, match="cannot be vmapped"):
+        torch.func.jacrev(opacity)(sigmas)
+    jacobian = torch.func.jacrev(lambda x: composite_ref.composite(x, rgbs.double(), t0.double(), t1.double(),
+                                                                   ray_indices, n_rays)[1])(sigmas.double())
+    assert jacobian.shape == (n_rays, s)  # the float64 twin takes every transform
