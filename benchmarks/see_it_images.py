@@ -30,7 +30,8 @@ from browser import DevTools, wait_for  # noqa: E402
 
 from ngp_warp.cli import main as ngp_warp  # noqa: E402
 from ngp_warp.ply import read_ply  # noqa: E402
-from ngp_warp.viewer import Viewer, load_target, viser_from_c2w  # noqa: E402
+from ngp_warp.cli.view import load_target  # noqa: E402
+from ngp_warp.viewer import Viewer, viser_from_c2w  # noqa: E402
 
 WIDTH, HEIGHT = 800, 500
 

@@ -16,7 +16,7 @@ translation :math:`\\tau_i`, both in world coordinates (zero at the start), so t
 grad), not through the view directions. Fitted by Adam with an L2 pull towards zero (instant-ngp's
 1e-4), which keeps the corrections small where the images say nothing.
 
-Measured on fox (H200, 60 s, session 15, RESULTS.md): it does not pay there. Its poses are good
+Measured on fox (H200, 60 s, RESULTS.md): it does not pay there. Its poses are good
 to a fraction of a pixel, refining costs about 75 % more time per step (the hash grid's
 position gradient), and at instant-ngp's learning rate of 1e-3 the corrections drift (mean 0.4°,
 largest 3.1°: 25.4 dB); at the default 1e-4 they stay at 0.06° (30.4 dB, against about 31 dB

@@ -156,7 +156,7 @@ def default_device() -> str:
 
 
 CPU_GRID_RESOLUTION = 64      # ngp-warp's sizes on the CPU (the command line's and the demo's):
-CPU_LOG2_HASHMAP_SIZE = 16    # 2 cores train lego 2x the steps (26.8 vs 24.1 dB at 150 s, session 15)
+CPU_LOG2_HASHMAP_SIZE = 16    # 2 cores train lego 2x the steps (26.8 vs 24.1 dB at 150 s, RESULTS.md)
 
 
 def cpu_sizes(config: TrainConfig) -> TrainConfig:
@@ -174,8 +174,8 @@ def device_defaults(config: TrainConfig, device_type: str) -> TrainConfig:
     pixel on CUDA, one ray on the CPU.
 
     On lego (H200, schedule over 300 s, 200 views, RESULTS.md) the sub-rays took the 300 s PSNR
-    from 34.75 to 36.61 dB. With them, session 8's 2^21-entry table and distortion loss no longer
-    helped (36.67–36.74 dB at 300 s with or without them, 25 views; NOTES entry 21), so the table
+    from 34.75 to 36.61 dB. With them, a 2^21-entry table and a distortion loss no longer
+    helped (36.67–36.74 dB at 300 s with or without them, 25 views; benchmarks/NOTES.md), so the table
     is instant-ngp's 2^19 and the distortion loss is off by default on both devices. On the CPU,
     2×2 sub-rays gave 33.18 against 33.56 dB on the demo in 150 s on 2 cores.
     """

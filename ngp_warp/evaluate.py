@@ -11,7 +11,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from tqdm import tqdm
+from ngp_warp.progress import progress
 
 from ngp_warp.appearance_fit import (FIT_ITERATIONS, fit_appearance_and_pose, fit_appearance_code,
                                      nearest_training_code, right_half)
@@ -104,7 +104,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     whole_views = zip(iter_test_renders(trainer), iter_test_renders(trainer, nearest_code=True)) if fitted else \
         itertools.repeat(None)
     per_image = []
-    bar = tqdm(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
+    bar = progress(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
         for (name, out, gt), whole in zip(views, whole_views):
             stem = Path(name).stem

@@ -3,7 +3,7 @@ in one Warp launch of one thread per 4-byte word (see :mod:`ngp_warp.kernels.gat
 
 torch's own advanced indexing moves narrow rows (a sample's 16 bf16 features, its 12-byte
 position) with one thread per row or per element, well below the memory's bandwidth on a GPU
-(RESULTS.md, session 13). No gradient flows through these.
+(RESULTS.md). No gradient flows through these.
 """
 
 from __future__ import annotations

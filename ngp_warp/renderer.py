@@ -121,7 +121,7 @@ FIRST_ROUND = 16  # render_view's first round before any view (and its least)
 def auto_first_round(shaded_per_ray: float | None) -> int:
     """``first_round`` from the mean samples per ray the model's last view shaded (None before
     any view): 1.5 times that, rounded up to a multiple of 8, at least :data:`FIRST_ROUND`. On
-    an H200 (RESULTS.md, session 13) lego (5.2 shaded per ray) rendered fastest with 16 and fox
+    an H200 (RESULTS.md) lego (5.2 shaded per ray) rendered fastest with 16 and fox
     (20.1) with 32 of the values tried."""
     if shaded_per_ray is None:
         return FIRST_ROUND

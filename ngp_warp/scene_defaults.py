@@ -14,7 +14,7 @@
 * Field box: a COLMAP capture of an object on a plain backdrop that trains bounded gets the box
   its cameras see (:func:`choose_aabb_scale`), not the one holding its cameras.
 * Occupancy threshold: instant-ngp's 0.01 (optical thickness of one step) on NeRF-synthetic
-  renders; 0.05 on captures. On fox (H200, 60 s, session 12, RESULTS.md) 0.01 left 60 % of the
+  renders; 0.05 on captures. On fox (H200, 60 s, RESULTS.md) 0.01 left 60 % of the
   finest cascade's visible cells occupied: 67 trained samples per ray (median), about 4k rays
   per step; 0.05 took it to 25 per ray and 10k rays per step at the same held-out PSNR
   (28.21 → 27.7–28.0 dB, mean code), while lego at 0.05 stayed within 0.05 dB.
@@ -24,7 +24,7 @@
   bounded captures, 0 elsewhere. On fox (H200, 60 s, RESULTS.md) the loss thins the
   semi-transparent floaters in front of the training cameras that some held-out views see
   (7.6 → 2 % of view 0089's rays): none 30.28 dB (five seeds), world-space 1e-4 31.09 (eight),
-  normalised 4e-3 31.27 (eight; session 16). World-space 5e-4 put more weight in front (29.45
+  normalised 4e-3 31.27 (eight). World-space 5e-4 put more weight in front (29.45
   over five). On the contracted unbounded scene world-space 1e-4 cost about 2.5 dB and
   normalised 4e-3 neither cost nor gained (runs there differ by up to 5 dB), so it stays off.
 """

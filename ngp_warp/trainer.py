@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 
 import torch
-from tqdm import tqdm
+from ngp_warp.progress import progress as progress_bar
 
 from ngp_warp.batch import sample_pixels
 from ngp_warp.camera_refinement import CameraRefinement
@@ -228,7 +228,7 @@ class Trainer:
         def done() -> float:  # the bar counts steps, or seconds with a time budget only
             return self.step_count - start_step if steps else round(self.train_seconds - start_seconds, 1)
 
-        with tqdm(desc="train", total=steps or seconds, unit="step" if steps else "s", disable=not show_progress,
+        with progress_bar(desc="train", total=steps or seconds, unit="step" if steps else "s", disable=not show_progress,
                   dynamic_ncols=True) as bar:
             while True:
                 done_steps = self.step_count - start_step
@@ -336,7 +336,7 @@ def _check_finite(stats: dict, step: int) -> None:
         raise TrainingDiverged(f"training diverged: the loss is {loss} at step {step} (try a lower lr)")
 
 
-def _readout(bar: tqdm, stats: dict) -> None:
+def _readout(bar, stats: dict) -> None:
     """Show a step's loss, PSNR (from its mse), rays and samples (reading them syncs)."""
     psnr = -10.0 * math.log10(max(float(stats["mse"]), 1e-10))
     bar.set_postfix(loss=f"{float(stats['loss']):.4f}", psnr=f"{psnr:.2f}", rays=stats["rays"],

@@ -69,7 +69,7 @@ def extract_frames(video: Path, out_dir: Path, count: int | None = None, fps: fl
         out_dir: an existing folder.
         count: number of frames to keep (evenly spread), or
         fps: frames to keep per second of video. Exactly one of the two.
-        show_progress: a tqdm bar over the decoded frames.
+        show_progress: a progress bar over the decoded frames.
 
     Returns:
         The images written, in video order (their names sort in that order).
@@ -77,7 +77,7 @@ def extract_frames(video: Path, out_dir: Path, count: int | None = None, fps: fl
     Raises:
         DataError: the file is no readable video, or it has no frame rate and ``fps`` was asked.
     """
-    from tqdm import tqdm
+    from ngp_warp.progress import progress
 
     if (count is None) == (fps is None):
         raise ValueError("give exactly one of count and fps")
@@ -85,7 +85,7 @@ def extract_frames(video: Path, out_dir: Path, count: int | None = None, fps: fl
     stretch = stretch_of_frames(n_frames, float(meta.get("fps") or 0.0), count, fps)
     width, height = meta["size"]
     best_score, best_image, current, written = -1.0, None, 0, []  # best_score < 0: no frame held
-    with tqdm(total=n_frames, desc="frames", unit="frame", disable=not show_progress) as bar:
+    with progress(total=n_frames, desc="frames", unit="frame", disable=not show_progress) as bar:
         for i, raw in enumerate(frames):
             k = int(stretch[min(i, n_frames - 1)])
             if k != current and best_score >= 0.0:  # a stretch ended: keep its sharpest

@@ -4,7 +4,6 @@ arguments."""
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -12,7 +11,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import torch
-from tqdm import tqdm
+from ngp_warp.progress import progress
 
 from ngp_warp.atomic import atomic_file
 from ngp_warp.camera_path import CameraPath, around_cameras, load_camera_path, ngp_transform
@@ -82,7 +81,7 @@ def render_path_video(render_frame: RenderFrame, path: CameraPath, out: str | Pa
     out = Path(out)
     frames, depths, opacities = [], [], []
     cameras = zip(path.c2w, path.intrinsics)
-    for c2w, intrinsics in tqdm(cameras, desc="video", total=len(path.c2w), unit="frame", disable=not show_progress):
+    for c2w, intrinsics in progress(cameras, desc="video", total=len(path.c2w), unit="frame", disable=not show_progress):
         rendered = render_frame(c2w, intrinsics, path.width, path.height)
         frames.append((rendered["rgb"].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy())
         if depth:
@@ -105,18 +104,6 @@ def render_trainer_video(trainer, path: CameraPath, out: Path, depth: bool, quie
         return trainer.render_image(c2w, intrinsics, width, height, background=background)
 
     return render_path_video(frame, path, out, depth=depth, show_progress=not quiet)
-
-
-def add_path_arguments(parser: argparse.ArgumentParser, positive_int, positive_float) -> None:
-    """``--path``, ``--frames``, ``--fps`` and ``--depth-video`` for ``ngp-warp render``
-    (``positive_int``/``positive_float``: the CLI's argparse types)."""
-    parser.add_argument("--path", default="orbit", metavar="FILE|orbit|spiral",
-                        help="camera path: a nerfstudio camera_path.json, an instant-ngp base_cam.json, "
-                             "or orbit / spiral around the training cameras (default orbit)")
-    parser.add_argument("--frames", type=positive_int, default=60,
-                        help="frames of an orbit, a spiral or an instant-ngp path (nerfstudio paths bring their own)")
-    parser.add_argument("--fps", type=positive_float, default=20.0, help="frames per second (nerfstudio paths bring their own)")
-    parser.add_argument("--depth-video", action="store_true", help="also write NAME_depth.mp4 (or .gif)")
 
 
 def camera_path_from_args(args, scene, scene_dir: str | Path) -> CameraPath:

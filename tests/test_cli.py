@@ -111,6 +111,20 @@ def test_bad_numbers_and_video_names_are_refused(scene, tmp_path, capsys):
     assert ".mp4 or .gif" in one_line_error(capsys)
 
 
+def test_output_files_are_vetted_before_the_run_is_loaded(tmp_path, capsys):
+    run = tmp_path / "run"  # no checkpoint: any loading would fail with another message
+    (run / "taken.ply").mkdir(parents=True)
+    (run / "file").write_text("")
+    cases = [(["export", str(run), "--mesh", "taken.ply"], "--mesh taken.ply: is a folder"),
+             (["export", str(run), "--points", "file/p.ply"], "folder " + str(run / "file") + " does not exist"),
+             (["export", str(run), "--mesh", "x" * 300 + ".ply"], "longer than the file system takes"),
+             (["render", str(run), "--video", "taken.ply"], "expected a .mp4 or .gif path"),
+             (["render", str(run), "--video", "file/v.mp4"], "does not exist")]
+    for argv, message in cases:
+        assert main([*argv, "--device", "cpu"]) == 2
+        assert message in one_line_error(capsys), argv
+
+
 def test_bad_settings_are_one_line_and_create_nothing(scene, tmp_path, capsys):
     out = tmp_path / "o"
     assert main(["train", str(scene), "--out", str(out), "--set", "field.log2_hashmap_size=big"]) == 2

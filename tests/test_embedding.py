@@ -28,6 +28,16 @@ def rays(n: int, seed: int = 0, dtype=torch.float32) -> tuple[torch.Tensor, torc
     return o.to(dtype), d.to(dtype)
 
 
+def packed(seed: int, n_rays: int, s: int, first_ray: int = 0):
+    """Random packed samples: (sigmas [S], rgbs [S, 3], t_starts, t_ends, sorted ray_indices in
+    [first_ray, n_rays))."""
+    g = torch.Generator().manual_seed(seed)
+    ray_indices = torch.sort(torch.randint(first_ray, n_rays, (s,), generator=g)).values
+    t0 = torch.rand(s, generator=g)
+    t1 = t0 + 0.3 * torch.rand(s, generator=g)
+    return 3 * torch.rand(s, generator=g), torch.rand(s, 3, generator=g), t0, t1, ray_indices
+
+
 class ViewField(torch.nn.Module):
     """A smooth blob whose colour depends on the view direction (as a NeRF's does)."""
 
@@ -104,12 +114,8 @@ def test_float64_rays_pass_gradcheck_in_the_fields_parameters():
 
 
 def test_composite_refuses_a_second_derivative_and_its_float64_twin_takes_one():
-    g = torch.Generator().manual_seed(1)
-    n_rays, s = 3, 12
-    ray_indices = torch.sort(torch.randint(0, n_rays, (s,), generator=g)).values
-    t0 = torch.rand(s, generator=g)
-    t1 = t0 + 0.3 * torch.rand(s, generator=g)
-    sigmas, rgbs = torch.rand(s, generator=g) * 3, torch.rand(s, 3, generator=g)
+    n_rays = 3
+    sigmas, rgbs, t0, t1, ray_indices = packed(1, n_rays, 12)
     a, b = sigmas.clone().requires_grad_(True), rgbs.clone().requires_grad_(True)
     (ga,) = torch.autograd.grad(composite(a, b, t0, t1, ray_indices, n_rays)[0].sum(), a, create_graph=True)
     with pytest.raises(RuntimeError, match="differentiable once"):
@@ -165,12 +171,9 @@ def test_hash_grid_takes_batches_float64_and_names_a_bad_dtype():
 def test_composite_is_a_torch_library_op_that_compiles_without_graph_breaks():
     from ngp_warp.composite import _composite_op, _ray_offsets_op
 
-    g = torch.Generator().manual_seed(3)
     n_rays, s = 5, 40
-    ray_indices = torch.sort(torch.randint(0, n_rays, (s,), generator=g)).values
-    t0 = torch.rand(s, generator=g)
-    t1 = t0 + 0.3 * torch.rand(s, generator=g)
-    sigmas, rgbs = (torch.rand(s, generator=g) * 3).requires_grad_(True), torch.rand(s, 3, generator=g).requires_grad_(True)
+    sigmas, rgbs, t0, t1, ray_indices = packed(3, n_rays, s)
+    sigmas, rgbs = sigmas.requires_grad_(True), rgbs.requires_grad_(True)
 
     def loss(sigmas, rgbs):
         rgb, opacity, depth = composite(sigmas, rgbs, t0, t1, ray_indices, n_rays)
@@ -233,12 +236,9 @@ def test_nerfacc_options_alpha_thre_per_ray_interval_and_normalised_depth():
 def test_nerfacc_helpers_match_the_composite():
     from ngp_warp.volume_rendering import accumulate_along_rays, alphas_and_transmittance, rendering
 
-    g = torch.Generator().manual_seed(4)
-    n_rays, s = 6, 50
-    ray_indices = torch.sort(torch.randint(1, n_rays, (s,), generator=g)).values  # ray 0 has none
-    t0 = torch.rand(s, generator=g)
-    t1 = t0 + 0.2 * torch.rand(s, generator=g)
-    sigmas, rgbs = (4 * torch.rand(s, generator=g)).requires_grad_(True), torch.rand(s, 3, generator=g)
+    n_rays = 6
+    sigmas, rgbs, t0, t1, ray_indices = packed(4, n_rays, 50, first_ray=1)  # ray 0 has none
+    sigmas.requires_grad_(True)
     rgb, opacity, depth, weights = composite(sigmas, rgbs, t0, t1, ray_indices, n_rays, return_weights=True)
     alphas, trans = alphas_and_transmittance(sigmas, t0, t1, ray_indices, n_rays)
     torch.testing.assert_close(trans * alphas, weights, rtol=1e-5, atol=1e-6)
@@ -311,12 +311,8 @@ def test_march_and_composite_compile_into_one_graph():
 
 
 def test_torch_func_grad_and_vmap_take_the_composite_and_jacrev_is_refused_in_one_line():
-    g = torch.Generator().manual_seed(5)
     n_rays, s = 3, 12
-    ray_indices = torch.sort(torch.randint(0, n_rays, (s,), generator=g)).values
-    t0 = torch.rand(s, generator=g)
-    t1 = t0 + 0.3 * torch.rand(s, generator=g)
-    sigmas, rgbs = torch.rand(s, generator=g), torch.rand(s, 3, generator=g)
+    sigmas, rgbs, t0, t1, ray_indices = packed(5, n_rays, s)
 
     def opacity(x):
         return composite(x, rgbs, t0, t1, ray_indices, n_rays, validate=False)[1]
@@ -324,7 +320,7 @@ def test_torch_func_grad_and_vmap_take_the_composite_and_jacrev_is_refused_in_on
     x = sigmas.clone().requires_grad_(True)
     torch.testing.assert_close(torch.func.grad(lambda x: opacity(x).square().sum())(sigmas),
                                torch.autograd.grad(opacity(x).square().sum(), x)[0])
-    batch = torch.rand(4, s, generator=g)
+    batch = torch.rand(4, s, generator=torch.Generator().manual_seed(6))
     stacked = torch.vmap(opacity)(batch)
     assert stacked.shape == (4, n_rays)
     for k in range(4):

@@ -191,7 +191,7 @@ def test_export_command_refuses_bad_outputs_before_loading(tmp_path):
     from argparse import Namespace
 
     from ngp_warp.cli import UserError
-    from ngp_warp.export import cmd_export
+    from ngp_warp.cli.export import cmd_export
 
     args = Namespace(dir=str(tmp_path), mesh=None, points=None, resolution=8, threshold=None, max_points=10,
                      scene=None, device="cpu", quiet=True)

@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from ngp_warp.cli import main
-from ngp_warp.fit_many import finished_metrics, read_manifest, FitManyError
+from ngp_warp.cli.fit_many import finished_metrics, read_manifest, FitManyError
 from ngp_warp.scene import write_demo_scene
 
 TINY = ["--device", "cpu", "--quiet", "--no-video", "--target-samples", "1024", "--set", "grid_resolution=16",

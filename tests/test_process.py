@@ -15,6 +15,7 @@ pytest.importorskip("imageio_ffmpeg")
 import imageio.v3 as iio  # noqa: E402
 
 from ngp_warp import process as P  # noqa: E402
+from ngp_warp.cli.process import add_process_parser  # noqa: E402
 from ngp_warp import scene as demo  # noqa: E402
 from ngp_warp import video as V  # noqa: E402
 from ngp_warp.cli import main  # noqa: E402
@@ -61,7 +62,7 @@ def test_process_refuses_an_unknown_mapper_or_sift_in_one_line():
 
 def _cli(argv: list[str]) -> None:
     parser = argparse.ArgumentParser(prog="ngp-warp")
-    P.add_process_parser(parser.add_subparsers(dest="command", required=True))
+    add_process_parser(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(["process", *argv])
     args.func(args)
 

@@ -22,7 +22,8 @@ from ngp_warp.scene import write_demo_scene
 from ngp_warp.trainer import Trainer
 
 viser = pytest.importorskip("viser")
-from ngp_warp.viewer import Viewer, c2w_from_viser, load_target, to_image, view_size, viser_from_c2w  # noqa: E402
+from ngp_warp.cli.view import load_target  # noqa: E402
+from ngp_warp.viewer import Viewer, c2w_from_viser, to_image, view_size, viser_from_c2w  # noqa: E402
 
 
 def tiny_config(steps: int) -> TrainConfig:

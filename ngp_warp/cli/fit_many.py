@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+from ngp_warp.cli.common import CHECKPOINT, UserError, train_and_report, train_config, writable_dir
 from ngp_warp.data_error import DataError
 
 SUMMARY = "summary.json"
@@ -93,7 +94,6 @@ def fit_scene(scene: Path, run_dir: Path, args) -> dict:
     """Train, evaluate and render one scene into ``run_dir`` (skipped when finished, resumed
     from its checkpoint); its row of the summary. A user mistake in the scene is one printed
     line and a ``failed`` row."""
-    from ngp_warp import cli
     from ngp_warp.checkpoint import CheckpointError
     from ngp_warp.data import DataError
     from ngp_warp.run_folder import RunFolderError
@@ -103,13 +103,13 @@ def fit_scene(scene: Path, run_dir: Path, args) -> dict:
     if metrics is not None:
         return {**row, "status": "skipped", **_scores(metrics), "wall_seconds": None}
     start = time.perf_counter()
-    resume = (run_dir / cli.CHECKPOINT).is_file()
+    resume = (run_dir / CHECKPOINT).is_file()
     try:
         options = argparse.Namespace(**{**vars(args), "resume": resume, "overwrite": args.overwrite and not resume})
         if resume:
-            options.steps, options.seconds = remaining_budget(args, run_dir / cli.CHECKPOINT)
-        metrics = cli._train_and_report(scene, run_dir, options, config=None if resume else cli._train_config(args))
-    except (cli.UserError, DataError, CheckpointError, RunFolderError) as e:
+            options.steps, options.seconds = remaining_budget(args, run_dir / CHECKPOINT)
+        metrics = train_and_report(scene, run_dir, options, config=None if resume else train_config(args))
+    except (UserError, DataError, CheckpointError, RunFolderError) as e:
         print(f"ngp-warp: error: {scene.name}: {e}", file=sys.stderr)
         return {**row, "status": "failed", "error": str(e), "wall_seconds": time.perf_counter() - start}
     status = "resumed" if resume else "trained"
@@ -144,15 +144,14 @@ def _all_rows(rows: list[dict]) -> list[dict]:
 
 
 def cmd_fit_many(args) -> None:
-    from ngp_warp import cli
     from ngp_warp.atomic import atomic_write_text
     from ngp_warp.distributed import FIT_MANY_TIMEOUT, is_main_rank, join, rank_and_size, started_by_torchrun
 
     scenes = read_manifest(args.manifest)  # bad input: one line before anything is written
     try:
-        cli._train_config(args)
-        out = cli._writable_dir(Path(args.out))
-    except cli.UserError as e:
+        train_config(args)
+        out = writable_dir(Path(args.out))
+    except UserError as e:
         raise FitManyError(str(e)) from None
     if started_by_torchrun():  # coordination only: gloo, also between GPUs
         args.device = join(args.device, backend="gloo", timeout=FIT_MANY_TIMEOUT)

@@ -1,0 +1,115 @@
+"""The ``ngp-warp`` command: train, eval, render, export, view, process, fit-many, bench, demo,
+one module per subcommand, and the one error boundary (:func:`main`). The library never imports
+this package."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ngp_warp.cli.bench import cmd_bench
+from ngp_warp.cli.common import CHECKPOINT, UserError, folder_name, positive, seed_number
+from ngp_warp.cli.evaluate import cmd_eval
+from ngp_warp.cli.export import add_export_parser
+from ngp_warp.cli.fit_many import add_fit_many_parser
+from ngp_warp.cli.process import add_process_parser
+from ngp_warp.cli.render import add_path_arguments, cmd_render
+from ngp_warp.cli.train import cmd_demo, cmd_train
+from ngp_warp.cli.view import add_view_parser
+
+__all__ = ["CHECKPOINT", "UserError", "main"]
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ngp-warp", description="instant-NGP radiance fields on Warp kernels (CPU or CUDA)")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp):
+        sp.add_argument("--device", default="auto", help="cpu, cuda or cuda:N (default: cuda when present)")
+        sp.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    def training(sp):
+        budget = sp.add_mutually_exclusive_group()
+        budget.add_argument("--steps", type=positive(int), help="training steps")
+        budget.add_argument("--seconds", type=positive(float), help="training wall-clock budget in seconds")
+        sp.add_argument("--downscale", type=positive(int), help="shrink images by this integer factor (default 1)")
+        sp.add_argument("--seed", type=seed_number, default=0)
+        sp.add_argument("--target-samples", type=positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
+        sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
+                             "(repeatable; see ngp_warp.config.TrainConfig)")
+        sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
+        sp.add_argument("--frames", type=positive(int), default=60, help="orbit video frames")
+        sp.add_argument("--overwrite", action="store_true", help="replace the run already in the output folder")
+        sp.add_argument("--checkpoint-every", type=positive(float), default=300.0, metavar="SECONDS",
+                        help="save a checkpoint this often while training (default 300; also on Ctrl-C and SIGTERM)")
+
+    t = sub.add_parser("train", help="train on a scene folder, then evaluate and render")
+    t.add_argument("scene", help="NeRF-synthetic folder or folder with an instant-ngp transforms.json")
+    t.add_argument("--out", type=folder_name, required=True, help="output folder")
+    t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    t.add_argument("--gpus", type=positive(int), default=1, help="data-parallel ranks through torchrun (README)")
+    training(t)
+    common(t)
+    t.set_defaults(func=cmd_train)
+
+    d = sub.add_parser("demo", help="generate the built-in procedural scene, train and evaluate on it")
+    d.add_argument("--out", type=folder_name, default="ngp-warp-demo", help="output folder (default ./ngp-warp-demo)")
+    d.add_argument("--scene", choices=("demo", "unbounded"), default="demo",  # ngp_warp.demo.DEMOS
+                   help="demo: objects in a box, white background; unbounded: the 360° scene (objects "
+                        "on a ground plane to the horizon, learned background, contracted space)")
+    training(d)
+    common(d)
+    d.set_defaults(func=cmd_demo)
+
+    e = sub.add_parser("eval", help="evaluate a trained output folder on its test split")
+    e.add_argument("dir", type=folder_name)
+    e.add_argument("--scene", help="scene folder, if it moved since training")
+    common(e)
+    e.set_defaults(func=cmd_eval)
+
+    r = sub.add_parser("render", help="render a video along a camera path from a trained output folder")
+    r.add_argument("dir", type=folder_name)
+    r.add_argument("--video", default="orbit.mp4", help="video path (.mp4, or .gif; relative to DIR)")
+    add_path_arguments(r, positive(int), positive(float))
+    r.add_argument("--scene", help="scene folder, if it moved since training")
+    common(r)
+    r.set_defaults(func=cmd_render)
+
+    common(add_export_parser(sub, positive(int), positive(float)))
+    common(add_view_parser(sub, positive(int)))
+    add_process_parser(sub)
+
+    add_fit_many_parser(sub, training, common, folder_name, positive(int))
+
+    b = sub.add_parser("bench", help="kernel throughput table")
+    b.add_argument("--quick", action="store_true", help="small sizes only")
+    common(b)
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if getattr(args, "gpus", 1) > 1:  # run this command line as that many torchrun ranks
+        from ngp_warp.distributed import launch_ranks
+
+        return launch_ranks(args, sys.argv[1:] if argv is None else argv)
+    from ngp_warp.checkpoint import CheckpointError
+    from ngp_warp.data import DataError
+    from ngp_warp.memory_estimate import SettingsTooLarge
+    from ngp_warp.run_folder import SIGTERM_EXIT, RunFolderError, Terminated, sigterm_as_interrupt
+
+    try:
+        with sigterm_as_interrupt():
+            args.func(args)
+    except (UserError, DataError, CheckpointError, RunFolderError, SettingsTooLarge) as e:
+        print(f"ngp-warp: error: {e}", file=sys.stderr)
+        return 2
+    except Terminated:
+        print("ngp-warp: terminated (SIGTERM)", file=sys.stderr)
+        return SIGTERM_EXIT
+    except KeyboardInterrupt:
+        print("ngp-warp: interrupted", file=sys.stderr)
+        return 130
+    return 0

@@ -1,0 +1,240 @@
+"""What the subcommands share: the run folder's checkpoint name, the one-line user error, the
+device, output folders, the training settings and the train → checkpoint → evaluate → video path."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from pathlib import Path
+
+CHECKPOINT = "checkpoint.pt"
+
+
+ORBIT_FPS = 20.0  # the training run's orbit video
+
+
+class UserError(Exception):
+    """A mistake in the command line or its inputs: reported as one line, no traceback."""
+
+
+def resolve_device(name: str | None) -> str:
+    from ngp_warp import _wp
+    from ngp_warp.config import default_device
+
+    if name in (None, "auto"):
+        return default_device()
+    if name.startswith("cuda") and not _wp.cuda_available():
+        raise UserError(f"--device {name}: no CUDA GPU usable by torch and Warp on this machine (use --device cpu)")
+    if name != "cpu" and not name.startswith("cuda"):
+        raise UserError(f"--device {name}: expected cpu, cuda or cuda:N")
+    return name
+
+
+def writable_dir(path: Path) -> Path:
+    """Create ``path`` if needed and prove we can write there, before any long work starts."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".ngp-warp-write-test-{os.getpid()}"  # data-parallel ranks probe at once
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"{path}: output folder is not writable ({e.strerror or e})") from None
+    return path
+
+
+def output_file(out_dir: Path, name: str, flag: str, suffixes: tuple[str, ...]) -> Path:
+    """The file ``name`` (relative to ``out_dir`` unless absolute) that ``flag`` asks a
+    subcommand to write, vetted before any work: one of ``suffixes``, not a folder, in a folder
+    that exists and takes a file (probed), a name the file system takes; UserError otherwise."""
+    path = Path(name)
+    path = path if path.is_absolute() else Path(out_dir) / path
+    if path.suffix.lower() not in suffixes:
+        raise UserError(f"{flag} {name}: expected a {' or '.join(suffixes)} path")
+    if len(path.name.encode()) > 255:
+        raise UserError(f"{flag}: the file name is longer than the file system takes (255 bytes)")
+    if path.is_dir():
+        raise UserError(f"{flag} {name}: is a folder, not a file")
+    if not path.parent.is_dir():
+        raise UserError(f"{flag} {name}: folder {path.parent} does not exist")
+    try:
+        probe = path.parent / f".ngp-warp-write-test-{os.getpid()}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"{flag} {name}: cannot write in {path.parent} ({e.strerror or e})") from None
+    return path
+
+
+def with_settings(cfg, args):
+    """``cfg`` with ``--target-samples`` and the ``--set KEY=VALUE`` settings applied."""
+    from ngp_warp.config import apply_overrides
+
+    if args.target_samples:
+        cfg.target_samples = args.target_samples
+    try:
+        cfg = apply_overrides(cfg, args.set)
+        cfg.check()
+        return cfg
+    except ValueError as e:
+        raise UserError(f"--set: {e}") from None
+
+
+def train_config(args, device: str | None = None):  # device: resolved already, else args.device's
+    from ngp_warp.config import TrainConfig, cpu_sizes
+    cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
+    return with_settings(cpu_sizes(cfg) if (device or resolve_device(args.device)) == "cpu" else cfg, args)  # --set wins
+
+
+def new_trainer(scene, config, device: str):
+    """A Trainer; its ValueErrors, which name a setting that does not suit the scene, as UserError."""
+    from ngp_warp.trainer import Trainer
+    try:
+        return Trainer(scene, config, device=device)
+    except ValueError as e:
+        raise UserError(f"--set: {e}") from None
+
+
+def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
+    """Train (or resume), checkpoint, evaluate and render into ``out`` (a folder of one run:
+    :class:`ngp_warp.run_folder.RunFolder`)."""
+    from ngp_warp.data import load_scene
+    from ngp_warp.run_folder import RunFolder
+
+    device = resolve_device(args.device)
+    out = Path(out)
+    resume = getattr(args, "resume", False)
+    folder = RunFolder(out, resume, args.overwrite, ("--resume" if hasattr(args, "resume") else None, "--overwrite"))
+    scene = None if resume else load_scene(scene_path, downscale=args.downscale or 1)
+    created = not out.exists()
+    out = writable_dir(out)
+    try:
+        return _run(scene, scene_path, folder, args, device, config, resume)
+    except BaseException:
+        if created and not any(out.iterdir()):
+            out.rmdir()  # leave nothing behind for a run that wrote nothing
+        raise
+
+
+def _run(scene, scene_path: Path, folder, args, device: str, config, resume: bool) -> dict:
+    from ngp_warp.checkpoint import load_trainer, save_checkpoint
+    from ngp_warp.camera_path import around_cameras
+    from ngp_warp.video_out import render_trainer_video
+    from ngp_warp.evaluate import evaluate
+    from ngp_warp.refined_transforms import write_refined_transforms
+
+    out = folder.path
+    ckpt = out / CHECKPOINT
+    downscale = args.downscale or 1
+    if resume:
+        trainer, record = load_trainer(ckpt, device=device, scene_path=scene_path)  # the same views
+        if args.downscale not in (None, record["downscale"]):
+            raise UserError(f"--downscale {args.downscale} with --resume: {out} trained at --downscale "
+                            f"{record['downscale']} (a resumed run keeps it)")
+        trainer.config.steps, trainer.config.seconds = args.steps, args.seconds
+        downscale = record["downscale"]
+        print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
+    else:
+        trainer = new_trainer(scene, config, device)
+    if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
+        from ngp_warp.distributed import is_main_rank, make_data_parallel
+
+        make_data_parallel(trainer)
+        if not is_main_rank():
+            return trainer.train(show_progress=False)
+    scene = trainer.scene
+    print(f"scene {scene_path} ({scene.source}): {len(scene.train.names)} train views "
+          f"{scene.train.width}x{scene.train.height}, device {trainer.device}, finest hash-grid "
+          f"level {trainer.config.field.finest_resolution:g} cells, table 2^{trainer.config.field.log2_hashmap_size} "
+          f"per level, distortion loss weight {trainer.config.distortion_weight:g}"
+          f"{f' ({trainer.config.distortion_spacing})' if trainer.config.distortion_weight else ''}, "
+          f"{trainer.config.supersample}x{trainer.config.supersample} rays per pixel", file=sys.stderr)
+    if scene.test_is_heldout:
+        print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
+              file=sys.stderr)
+
+    def save() -> None:  # an overwritten run's outputs go just before the first (good) write
+        save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim)
+
+    _train(trainer, save, folder, args)
+    save()
+    if trainer.cameras is not None:
+        refined = write_refined_transforms(trainer, scene_path, downscale, out)
+        print(f"camera refinement: {trainer.cameras.summary()}; refined poses: {refined}", file=sys.stderr)
+    metrics = evaluate(trainer, out, show_progress=not args.quiet)
+    if not args.no_video:
+        train = scene.train
+        centre = ((scene.aabb[:3] + scene.aabb[3:]) / 2).cpu()
+        orbit = around_cameras("orbit", train.c2w, train.intrinsics, train.width, train.height, centre,
+                               args.frames, ORBIT_FPS)
+        video = render_trainer_video(trainer, orbit, out / "orbit.mp4", depth=False, quiet=args.quiet)[0]
+        print(f"orbit video: {video}", file=sys.stderr)
+    return metrics
+
+
+def _train(trainer, save, folder, args) -> None:
+    """Train, saving every ``--checkpoint-every`` seconds and on Ctrl-C or SIGTERM (then
+    re-raised); a diverged run stops with one line, its last good checkpoint kept."""
+    from ngp_warp.run_folder import Terminated
+    from ngp_warp.trainer import TrainingDiverged
+
+    ckpt = folder.path / CHECKPOINT
+    try:
+        trainer.train(show_progress=not args.quiet, checkpoint=save, checkpoint_every=args.checkpoint_every)
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (main's sigterm_as_interrupt)
+        save()
+        how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        resume = "--resume" if hasattr(args, "resume") else f"ngp-warp train {folder.path / 'scene'} --resume"
+        print(f"ngp-warp: {how} at step {trainer.step_count}; checkpoint saved to {ckpt} "
+              f"(continue with {resume})", file=sys.stderr)
+        raise
+    except TrainingDiverged as e:
+        kept = ("nothing was saved" if not ckpt.exists() else f"{ckpt} keeps the last good checkpoint"
+                if folder.claimed else f"{folder.path} still holds the previous run")
+        raise UserError(f"{e}; {kept}") from None
+
+
+def print_metrics(metrics: dict, out: Path) -> None:
+    ssim = "n/a (images under 11 px)" if metrics["ssim"] is None else f"{metrics['ssim']:.4f}"
+    psnr = "n/a (not finite)" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB"
+    print(f"{metrics['test_split']}: PSNR {psnr}  SSIM {ssim}  "
+          f"({metrics['n_test_images']} images, {metrics['steps']} steps, "
+          f"{metrics['train_seconds']:.1f} s training on {metrics['device']})")
+    if metrics.get("psnr_mean_code") is not None:
+        fitted = "appearance code and pose" if " and pose " in metrics["appearance"] else "appearance code"
+        print(f"  (right halves, each view's {fitted} fitted on its left half; whole images with the nearest "
+              f"training view's code: PSNR {metrics['psnr_nearest_code']:.2f} dB, the mean code: "
+              f"{metrics['psnr_mean_code']:.2f} dB)")
+    print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
+
+
+def positive(kind):
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}") from None
+        if not (value > 0 and math.isfinite(value)):
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+def seed_number(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 2^63), got {text!r}")
+    return value
+
+
+def folder_name(text: str) -> str:
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a folder, got an empty name")
+    return text

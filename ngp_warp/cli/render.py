@@ -1,0 +1,37 @@
+"""``ngp-warp render``: a video along a camera path."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ngp_warp.cli.common import CHECKPOINT, UserError, output_file, resolve_device
+
+def add_path_arguments(parser: argparse.ArgumentParser, positive_int, positive_float) -> None:
+    """``--path``, ``--frames``, ``--fps`` and ``--depth-video`` for ``ngp-warp render``
+    (``positive_int``/``positive_float``: the CLI's argparse types)."""
+    parser.add_argument("--path", default="orbit", metavar="FILE|orbit|spiral",
+                        help="camera path: a nerfstudio camera_path.json, an instant-ngp base_cam.json, "
+                             "or orbit / spiral around the training cameras (default orbit)")
+    parser.add_argument("--frames", type=positive_int, default=60,
+                        help="frames of an orbit, a spiral or an instant-ngp path (nerfstudio paths bring their own)")
+    parser.add_argument("--fps", type=positive_float, default=20.0, help="frames per second (nerfstudio paths bring their own)")
+    parser.add_argument("--depth-video", action="store_true", help="also write NAME_depth.mp4 (or .gif)")
+
+
+def cmd_render(args) -> None:
+    from ngp_warp.checkpoint import load_trainer
+    from ngp_warp.video_out import PATH_KINDS, camera_path_from_args, depth_path, render_trainer_video
+
+    video = output_file(Path(args.dir), args.video, "--video", (".mp4", ".gif"))  # before any work
+    if args.depth_video:
+        output_file(video.parent, depth_path(video).name, "--depth-video", (video.suffix.lower(),))
+    if args.path not in PATH_KINDS and not Path(args.path).is_file():
+        raise UserError(f"--path {args.path}: no such file (or use {' or '.join(PATH_KINDS)})")
+    trainer, record = load_trainer(Path(args.dir) / CHECKPOINT, device=resolve_device(args.device), scene_path=args.scene)
+    try:
+        path = camera_path_from_args(args, trainer.scene, record["path"])
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    for written in render_trainer_video(trainer, path, video, depth=args.depth_video, quiet=args.quiet):
+        print(f"wrote {written}")

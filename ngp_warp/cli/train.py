@@ -1,0 +1,40 @@
+"""``ngp-warp train`` and ``ngp-warp demo``."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ngp_warp.cli.common import UserError, print_metrics, resolve_device, train_and_report, train_config, with_settings, writable_dir
+
+def cmd_train(args) -> None:
+    scene = Path(args.scene)
+    if args.resume and args.set:
+        raise UserError("--set with --resume: a resumed run keeps the settings in its checkpoint")
+    if args.resume and args.overwrite:
+        raise UserError("--resume with --overwrite: continue the run in --out, or replace it, not both")
+    config = None if args.resume else train_config(args)  # bad settings fail before any loading
+    from ngp_warp.distributed import join_data_parallel
+
+    args.data_parallel = join_data_parallel(args)  # under torchrun: this rank's device in args.device
+    metrics = train_and_report(scene, Path(args.out), args, config=config)
+    if metrics is not None:  # None on ranks other than 0
+        print_metrics(metrics, Path(args.out))
+
+
+def cmd_demo(args) -> None:
+    from ngp_warp.demo import DEMOS
+    from ngp_warp.run_folder import RunFolder
+
+    # every option is checked before the scene is generated
+    device = resolve_device(args.device)
+    demo = DEMOS[args.scene]
+    config = with_settings(demo.config(device, args.steps, args.seconds, args.seed), args)
+    RunFolder(Path(args.out), overwrite=args.overwrite, flags=(None, "--overwrite"))
+    out = writable_dir(Path(args.out))
+    scene_dir = out / demo.folder
+    if not (scene_dir / "transforms_train.json").exists():
+        print(f"generating the {args.scene} scene in {scene_dir}", file=sys.stderr)
+        demo.write(scene_dir, seed=args.seed)
+    metrics = train_and_report(scene_dir, out, args, config=config)
+    print_metrics(metrics, out)

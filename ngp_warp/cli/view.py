@@ -1,0 +1,68 @@
+"""``ngp-warp view``: the web viewer of a run, or of a scene trained live."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ngp_warp.cli.common import CHECKPOINT, UserError, new_trainer, resolve_device, train_config
+
+def add_view_parser(subparsers, positive_int):
+    """The ``view`` sub-command (``positive_int``: the CLI's argparse type); returns its parser,
+    for the CLI's shared ``--device``/``--quiet``."""
+    v = subparsers.add_parser("view", help="web viewer (viser) of a trained output folder, or of a scene trained live")
+    v.add_argument("target", metavar="RUN_OR_SCENE", help="a trained output folder, or a scene folder to train live")
+    v.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1; forward it over SSH: ssh -L 8080:localhost:8080)")
+    v.add_argument("--port", type=positive_int, default=8080, help="port (default 8080)")
+    v.add_argument("--resolution", type=positive_int,
+                   help="longest side of a resting frame in pixels (default 800 on CUDA, 200 on the CPU)")
+    v.add_argument("--moving-resolution", type=positive_int,
+                   help="longest side while the camera moves (default a quarter of --resolution)")
+    v.add_argument("--scene", help="a run's scene folder, if it moved since training")
+    v.add_argument("--steps", type=positive_int, help="live training: steps (default 20000)")
+    v.add_argument("--seconds", type=float, help="live training: wall-clock budget in seconds")
+    v.add_argument("--downscale", type=positive_int, default=1, help="live training: shrink images by this factor")
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--target-samples", type=positive_int, help="live training: samples per batch")
+    v.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="live training: any setting")
+    v.set_defaults(func=cmd_view)
+    return v
+
+
+def load_target(args, device: str):
+    """(trainer, live) for ``args.target``: a run folder's checkpoint, or a scene to train live."""
+    from ngp_warp.checkpoint import load_trainer
+    from ngp_warp.data import load_scene
+
+    target = Path(args.target)
+    if (target / CHECKPOINT).is_file():
+        return load_trainer(target / CHECKPOINT, device=device, scene_path=args.scene)[0], False
+    if not target.exists():
+        raise UserError(f"{target}: no such run or scene folder")
+    return new_trainer(load_scene(target, downscale=args.downscale), train_config(args, device), device), True
+
+
+def cmd_view(args) -> None:
+
+    try:
+        import viser  # noqa: F401  (the viewer extra)
+    except ImportError:
+        raise UserError("view needs viser: pip install 'ngp-warp[viewer]'") from None
+    from ngp_warp.viewer import Viewer
+
+    device = resolve_device(args.device)
+    trainer, live = load_target(args, device)
+    resolution = args.resolution or (800 if trainer.device.type == "cuda" else 200)
+    moving = args.moving_resolution or max(16, resolution // 4)
+    try:
+        viewer = Viewer(trainer, args.host, args.port, resolution, moving, live)
+    except OSError as e:
+        raise UserError(f"--port {args.port}: cannot listen on {args.host} ({e.strerror or e})") from None
+    what = "training live" if live else f"step {trainer.step_count}"
+    print(f"ngp-warp view: {args.target} ({what}) at {viewer.url}  (Ctrl-C to stop)", file=sys.stderr)
+    print(viewer.url, flush=True)
+    try:
+        viewer.serve()
+    finally:
+        viewer.close()
