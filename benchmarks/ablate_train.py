@@ -18,8 +18,8 @@ from pathlib import Path
 import torch
 
 from bench_train import scene_or_usage_error, train_and_evaluate, warm_up
-from ngp_warp.config import TrainConfig, apply_overrides
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.config import TrainConfig, apply_overrides
+from ngp_warp.training.trainer import Trainer
 
 
 def main() -> None:

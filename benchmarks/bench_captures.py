@@ -47,8 +47,8 @@ SCENES = ("demo-colmap", "demo-colmap-sky", "demo-ngp", "lego-colmap", "lego-col
 
 def write_room(folder: Path) -> Path:
     """The demo scene in its textured room as an opaque NeRF-synthetic folder (50 train, 10 test)."""
-    from ngp_warp import scene as demo
-    from ngp_warp.scene_folder import write_split
+    from ngp_warp.data import scene as demo
+    from ngp_warp.data.scene_folder import write_split
 
     def render(c2w: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
         return demo.render_room_views(c2w, intrinsics, 100, 100)
@@ -69,11 +69,11 @@ def source(name: str, work: Path, args) -> Path:
         return args.lego
     if not folder.exists():
         if base == "demo":
-            from ngp_warp.scene import write_demo_scene
+            from ngp_warp.data.scene import write_demo_scene
 
             write_demo_scene(folder, n_train=50, n_test=10)
         elif base == "unbounded":
-            from ngp_warp.scene_unbounded import write_unbounded_scene
+            from ngp_warp.data.scene_unbounded import write_unbounded_scene
 
             write_unbounded_scene(folder, n_train=60, n_test=10)
         else:

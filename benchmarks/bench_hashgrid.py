@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ngp_warp import HashGridEncoding  # noqa: E402
 from ngp_warp._reference.hashgrid import encode_like  # noqa: E402
-from ngp_warp.bench import device_name, measure  # noqa: E402
+from ngp_warp.outputs.bench import device_name, measure  # noqa: E402
 
 
 def parse_sizes(text: str) -> list[int]:

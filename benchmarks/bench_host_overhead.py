@@ -11,7 +11,7 @@ import time
 import torch
 
 from ngp_warp import HashGridEncoding, MarchOptions, OccupancyGrid, ray_marching
-from ngp_warp.composite import composite_packed
+from ngp_warp.ops.composite import composite_packed
 
 torch.manual_seed(0)
 grid = OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=8)

@@ -3,7 +3,7 @@ reprojection error, and the pose error after the best similarity alignment.
 
     python3 benchmarks/bench_process.py [--fox ../shared/data/fox] [--views 40] [--size 256]
 
-Rows: the demo scene in its textured room (``ngp_warp.scene.render_room_views``, known cameras)
+Rows: the demo scene in its textured room (``ngp_warp.data.scene.render_room_views``, known cameras)
 and, when its folder exists, fox (its 50 photos; reference: fox's own transforms.json).
 """
 
@@ -20,8 +20,8 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from ngp_warp import scene as demo
-from ngp_warp.process import ProcessConfig, pose_errors, process, require_pycolmap
+from ngp_warp.data import scene as demo
+from ngp_warp.data.process import ProcessConfig, pose_errors, process, require_pycolmap
 
 
 def _demo_photos(folder: Path, n_views: int, size: int) -> dict[str, np.ndarray]:

@@ -17,7 +17,7 @@ import math
 
 import torch
 
-from ngp_warp.bench import bench_scene
+from ngp_warp.outputs.bench import bench_scene
 
 
 def main(argv=None) -> None:

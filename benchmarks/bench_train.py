@@ -30,12 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ngp_warp.appearance_fit import right_half
-from ngp_warp.config import TrainConfig, apply_overrides
-from ngp_warp.data import DataError, load_scene
-from ngp_warp.evaluate import iter_test_renders
-from ngp_warp.metrics import psnr
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.appearance_fit import right_half
+from ngp_warp.training.config import TrainConfig, apply_overrides
+from ngp_warp.data.loading import DataError, load_scene
+from ngp_warp.outputs.evaluate import iter_test_renders
+from ngp_warp.outputs.metrics import psnr
+from ngp_warp.training.trainer import Trainer
 
 sys.path.insert(0, str(Path(__file__).parent))
 from grid_stats import format_stats, sample_stats  # noqa: E402

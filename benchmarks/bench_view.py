@@ -25,13 +25,13 @@ from pathlib import Path
 
 import torch
 
-from ngp_warp.checkpoint import load_trainer
+from ngp_warp.training.checkpoint import load_trainer
 from ngp_warp.cli import CHECKPOINT
-from ngp_warp.demo import demo_config
-from ngp_warp.data import load_scene
-from ngp_warp.renderer import auto_first_round
-from ngp_warp.scene import write_demo_scene
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.demo import demo_config
+from ngp_warp.data.loading import load_scene
+from ngp_warp.outputs.renderer import auto_first_round
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.training.trainer import Trainer
 
 
 def first_round(text: str) -> int | str:

@@ -23,8 +23,8 @@ import numpy as np
 import torch
 
 from fit_study import trainer_or_usage_error
-from ngp_warp.appearance_fit import fit_appearance_code, right_half
-from ngp_warp.evaluate import composite_on, to_uint8
+from ngp_warp.training.appearance_fit import fit_appearance_code, right_half
+from ngp_warp.outputs.evaluate import composite_on, to_uint8
 
 RINGS = 4
 

@@ -6,7 +6,7 @@ holds out every 8th frame, sorted by name):
 * ``colmap``: a COLMAP text model (``sparse/0/{cameras,images,points3D}.txt``, one PINHOLE
   camera, no sparse points) beside ``images/`` composited on white;
 * ``colmap-sky``: the same composited over the unbounded scene's environment at infinity
-  (mountains under a skyline, a sky gradient: :func:`ngp_warp.scene_unbounded.environment_colours`),
+  (mountains under a skyline, a sky gradient: :func:`ngp_warp.data.scene_unbounded.environment_colours`),
   so the background is textured and view-dependent in position, not trivially white;
 * ``ngp``: one instant-ngp ``transforms.json`` (``camera_angle_x``, the frames' matrices) beside
   ``images/`` composited on white.
@@ -96,7 +96,7 @@ def write_capture(src: Path, dst: Path, form: str, every: int = 1) -> Path:
         name = f"{k:04d}.png"
         background = np.ones((height, width, 3), np.float32)
         if form == "colmap-sky":
-            from ngp_warp.scene_unbounded import environment_colours
+            from ngp_warp.data.scene_unbounded import environment_colours
 
             d = torch.from_numpy(ray_directions(c2w, width, height, focal).reshape(-1, 3))
             d = d.cuda() if torch.cuda.is_available() else d

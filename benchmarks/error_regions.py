@@ -16,10 +16,10 @@ import numpy as np
 import torch
 
 from bench_train import scene_or_usage_error, warm_up
-from ngp_warp.config import TrainConfig, apply_overrides
-from ngp_warp.data import Split
-from ngp_warp.evaluate import composite_on
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.config import TrainConfig, apply_overrides
+from ngp_warp.data.loading import Split
+from ngp_warp.outputs.evaluate import composite_on
+from ngp_warp.training.trainer import Trainer
 
 REGIONS = {"background": (0.0, 0.02), "edges": (0.02, 0.98), "interior": (0.98, 1.01)}
 

@@ -4,9 +4,9 @@ scored on their right halves with codes fitted on the left half in several ways.
     python benchmarks/fit_study.py RUN_DIR [--fit ITERATIONS:LR:SEED[:pose] ...]
 
 Each ``--fit`` is Adam's iterations, learning rate and pixel seed for
-:func:`ngp_warp.appearance_fit.fit_appearance_code` (default: the evaluation's own, then its
+:func:`ngp_warp.training.appearance_fit.fit_appearance_code` (default: the evaluation's own, then its
 pixels redrawn, then longer and slower fits); ``:pose`` fits the view's pose as well
-(:func:`ngp_warp.appearance_fit.fit_appearance_and_pose`: how much of the error is the view's
+(:func:`ngp_warp.training.appearance_fit.fit_appearance_and_pose`: how much of the error is the view's
 registration). A fit whose PSNR moves with its seed is noisy; one
 that gains with more iterations is not converged. Prints a table: per view and the mean.
 """
@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ngp_warp.appearance_fit import FIT_ITERATIONS, FIT_LR, fit_appearance_and_pose, fit_appearance_code, right_half
-from ngp_warp.checkpoint import CheckpointError, load_trainer
-from ngp_warp.evaluate import composite_on
-from ngp_warp.metrics import psnr
+from ngp_warp.training.appearance_fit import FIT_ITERATIONS, FIT_LR, fit_appearance_and_pose, fit_appearance_code, right_half
+from ngp_warp.training.checkpoint import CheckpointError, load_trainer
+from ngp_warp.outputs.evaluate import composite_on
+from ngp_warp.outputs.metrics import psnr
 
 DEFAULT_FITS = [f"{FIT_ITERATIONS}:{FIT_LR}:0", f"{FIT_ITERATIONS}:{FIT_LR}:1", f"{FIT_ITERATIONS}:{FIT_LR}:2",
                 f"{3 * FIT_ITERATIONS}:{FIT_LR}:0", f"{3 * FIT_ITERATIONS}:{FIT_LR / 3}:0"]

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from fit_study import trainer_or_usage_error
-from ngp_warp.cameras import generate_rays
+from ngp_warp.data.cameras import generate_rays
 
 
 def front_weights(trainer, camera: dict, n_rays: int, seed: int = 0) -> dict:

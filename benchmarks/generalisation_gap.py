@@ -17,11 +17,11 @@ import numpy as np
 import torch
 
 from bench_train import scene_or_usage_error, warm_up
-from ngp_warp.config import TrainConfig, apply_overrides
-from ngp_warp.data import Split
-from ngp_warp.evaluate import iter_test_renders
-from ngp_warp.metrics import psnr
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.config import TrainConfig, apply_overrides
+from ngp_warp.data.loading import Split
+from ngp_warp.outputs.evaluate import iter_test_renders
+from ngp_warp.outputs.metrics import psnr
+from ngp_warp.training.trainer import Trainer
 
 
 def mean_psnr(trainer: Trainer, split: Split, every: int, spp: int = 1) -> float:

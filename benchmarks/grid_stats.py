@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import torch
 
-from ngp_warp.prune import prune_samples
-from ngp_warp.raymarch import ray_marching
+from ngp_warp.ops.prune import prune_samples
+from ngp_warp.ops.raymarch import ray_marching
 
 
 def _cascade_of(points: torch.Tensor, aabb: list[float], levels: int) -> torch.Tensor:
@@ -31,7 +31,7 @@ def _quantiles(counts: torch.Tensor) -> dict:
 
 @torch.no_grad()
 def sample_stats(trainer, n_rays: int = 1 << 16) -> dict:
-    """Samples per ray and the grid's occupancy of ``trainer`` (a :class:`ngp_warp.trainer.Trainer`).
+    """Samples per ray and the grid's occupancy of ``trainer`` (a :class:`ngp_warp.training.trainer.Trainer`).
 
     Returns:
         dict: ``marched`` / ``trained`` ({mean, median, p90} samples per ray over ``n_rays``

@@ -17,13 +17,13 @@ import collections
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from ngp_warp.bench import make_rays, scene_grid, timed
-from ngp_warp.raymarch import ray_marching
-from ngp_warp.render import composite_packed
+from ngp_warp.outputs.bench import make_rays, scene_grid, timed
+from ngp_warp.ops.raymarch import ray_marching
+from ngp_warp.ops.render import composite_packed
 
 
 def scene_ops(kind: str, device: str, target_samples: int) -> dict:
-    """The four calls of ``bench_render`` for scene ``kind`` (see :func:`ngp_warp.bench.bench_scene`)."""
+    """The four calls of ``bench_render`` for scene ``kind`` (see :func:`ngp_warp.outputs.bench.bench_scene`)."""
     grid = scene_grid(kind, device)
     probe_o, probe_d = make_rays(1024, device)
     per_ray = max(ray_marching(probe_o, probe_d, grid, validate=False).n_samples / 1024, 1.0)

@@ -19,12 +19,12 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-import ngp_warp.render
+import ngp_warp.ops.render
 from bench_train import scene_or_usage_error
-from ngp_warp.config import TrainConfig, apply_overrides
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.config import TrainConfig, apply_overrides
+from ngp_warp.training.trainer import Trainer
 
-# Trainer phases (ngp_warp.train_step.StepPhases) → table rows; indented rows run inside the
+# Trainer phases (ngp_warp.training.train_step.StepPhases) → table rows; indented rows run inside the
 # unindented one above them (not added to the step's total).
 PHASE_ROWS = {
     "grid_update": "occupancy grid update",
@@ -54,8 +54,8 @@ def time_phases(trainer: Trainer) -> dict[str, float]:
 
     trainer.instrument(lambda phase, fn: timed(PHASE_ROWS[phase], fn))
     # inside the render op: its module's own names for the march and the pruning
-    ngp_warp.render.ray_marching = timed("  march (+ its sync)", ngp_warp.render.ray_marching)
-    ngp_warp.render.prune_samples = timed("  prune", ngp_warp.render.prune_samples)
+    ngp_warp.ops.render.ray_marching = timed("  march (+ its sync)", ngp_warp.ops.render.ray_marching)
+    ngp_warp.ops.render.prune_samples = timed("  prune", ngp_warp.ops.render.prune_samples)
     return spent
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from ngp_warp.checkpoint import load_trainer
+from ngp_warp.training.checkpoint import load_trainer
 from ngp_warp.cli import CHECKPOINT
 
 

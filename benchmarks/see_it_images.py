@@ -29,9 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from browser import DevTools, wait_for  # noqa: E402
 
 from ngp_warp.cli import main as ngp_warp  # noqa: E402
-from ngp_warp.ply import read_ply  # noqa: E402
+from ngp_warp.outputs.ply import read_ply  # noqa: E402
 from ngp_warp.cli.view import load_target  # noqa: E402
-from ngp_warp.viewer import Viewer, viser_from_c2w  # noqa: E402
+from ngp_warp.viewer.server import Viewer, viser_from_c2w  # noqa: E402
 
 WIDTH, HEIGHT = 800, 500
 
@@ -66,7 +66,7 @@ def mesh_picture(run: Path, mesh_path: Path, out: Path, profile: Path) -> None:
     import trimesh  # comes with viser
     import viser
 
-    from ngp_warp.checkpoint import load_trainer
+    from ngp_warp.training.checkpoint import load_trainer
     from ngp_warp.cli import CHECKPOINT
 
     ply = read_ply(mesh_path)

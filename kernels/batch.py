@@ -1,12 +1,12 @@
 """Training batches in one launch: random pixels of random training images → rays, targets and
-random backgrounds (the camera model of ``ngp_warp.cameras``)."""
+random backgrounds (the camera model of ``ngp_warp.data.cameras``)."""
 
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-UNDISTORT_ITERATIONS = 10  # Newton steps, here and in ngp_warp.cameras; fixed, so nothing syncs
-LENS_PINHOLE = 0  # lens_model codes, shared with ngp_warp.cameras
+UNDISTORT_ITERATIONS = 10  # Newton steps, here and in ngp_warp.data.cameras; fixed, so nothing syncs
+LENS_PINHOLE = 0  # lens_model codes, shared with ngp_warp.data.cameras
 LENS_OPENCV = 1
 LENS_FISHEYE = 2
 

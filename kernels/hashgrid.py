@@ -94,7 +94,7 @@ def get_kernels(config: KernelConfig) -> Kernels:
     _check(config)
     D, F, interp, G, K, paired, half_grad, GX = config
     paired = bool(paired) and F <= 2
-    module = f"ngp_warp.hashgrid.D{D}F{F}{interp[0]}G{G}K{K}p{int(paired)}h{int(half_grad)}x{GX}"
+    module = f"ngp_warp.ops.hashgrid.D{D}F{F}{interp[0]}G{G}K{K}p{int(paired)}h{int(half_grad)}x{GX}"
     io = native_io(F)
     # (locate, corner_indices, corner_weight) and (join_pair, any_nonzero, dot_f)
     cell = (funcs.locate_func(D, interp == SMOOTHSTEP), *funcs.corner_funcs(D))

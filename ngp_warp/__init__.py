@@ -17,12 +17,12 @@ _wp.init()
 
 # Bound eagerly: the function ``composite`` shares its name with its module, and an eager
 # from-import keeps the package attribute pointing at the function.
-from ngp_warp.composite import composite  # noqa: E402
-from ngp_warp.hashgrid import HashGridEncoding  # noqa: E402
-from ngp_warp.field import NGPField  # noqa: E402
-from ngp_warp.occupancy import OccupancyGrid  # noqa: E402
-from ngp_warp.prune import prune_samples  # noqa: E402
-from ngp_warp.raymarch import MarchOptions, ray_marching  # noqa: E402
-from ngp_warp.render import render_rays  # noqa: E402
+from ngp_warp.ops.composite import composite  # noqa: E402
+from ngp_warp.ops.hashgrid import HashGridEncoding  # noqa: E402
+from ngp_warp.ops.field import NGPField  # noqa: E402
+from ngp_warp.ops.occupancy import OccupancyGrid  # noqa: E402
+from ngp_warp.ops.prune import prune_samples  # noqa: E402
+from ngp_warp.ops.raymarch import MarchOptions, ray_marching  # noqa: E402
+from ngp_warp.ops.render import render_rays  # noqa: E402
 
 __all__ = ["HashGridEncoding", "MarchOptions", "NGPField", "OccupancyGrid", "composite", "prune_samples", "ray_marching", "render_rays", "__version__"]

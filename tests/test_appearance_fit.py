@@ -8,15 +8,15 @@ import imageio.v3 as iio
 import pytest
 import torch
 
-from ngp_warp.appearance_fit import FIT_ITERATIONS, fit_appearance_code, nearest_training_code, right_half
-from ngp_warp.config import TrainConfig
-from ngp_warp.data import load_scene
-from ngp_warp.evaluate import evaluate, iter_test_renders, to_uint8
-from ngp_warp.field import FieldConfig
-from ngp_warp.metrics import psnr
-from ngp_warp.scene import write_demo_scene
-from ngp_warp.scene_unbounded import write_unbounded_scene
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.appearance_fit import FIT_ITERATIONS, fit_appearance_code, nearest_training_code, right_half
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.data.loading import load_scene
+from ngp_warp.outputs.evaluate import evaluate, iter_test_renders, to_uint8
+from ngp_warp.ops.field import FieldConfig
+from ngp_warp.outputs.metrics import psnr
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.data.scene_unbounded import write_unbounded_scene
+from ngp_warp.training.trainer import Trainer
 
 FIT = {"iterations": 60}  # every left-half pixel of the 24-pixel views in each iteration
 

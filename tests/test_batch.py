@@ -5,9 +5,9 @@ import math
 import pytest
 import torch
 
-from ngp_warp.batch import sample_pixels
-from ngp_warp.data import Split, generate_rays
-from ngp_warp.evaluate import composite_on
+from ngp_warp.ops.batch import sample_pixels
+from ngp_warp.data.loading import Split, generate_rays
+from ngp_warp.outputs.evaluate import composite_on
 
 
 def random_split(n_images=5, width=23, height=17, channels=4, distortion=False, seed=0, fisheye=False) -> Split:

@@ -2,7 +2,7 @@
 
 import math
 
-from ngp_warp.bench import KernelBenchConfig
+from ngp_warp.outputs.bench import KernelBenchConfig
 from ngp_warp.cli import main
 
 OPS = ("encode fwd", "encode bwd", "encode fwd+bwd", "march", "composite fwd", "composite bwd", "march+fwd+bwd",

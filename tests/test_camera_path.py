@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from ngp_warp import video_out
-from ngp_warp.camera_path import (around_cameras, catmull_rom, load_camera_path, matrix_from_quat,
+from ngp_warp.outputs import video_out
+from ngp_warp.outputs.camera_path import (around_cameras, catmull_rom, load_camera_path, matrix_from_quat,
                                   ngp_transform, orbit_cameras, quat_from_matrix, slerp, spiral_cameras)
-from ngp_warp.scene import look_at
+from ngp_warp.data.scene import look_at
 
 
 def random_rotations(n: int) -> torch.Tensor:

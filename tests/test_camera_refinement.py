@@ -6,12 +6,12 @@ import math
 import pytest
 import torch
 
-from ngp_warp.camera_refinement import CameraRefinement, rotation_matrices
-from ngp_warp.cameras import generate_rays
-from ngp_warp.config import TrainConfig
-from ngp_warp.data import load_scene
-from ngp_warp.field import FieldConfig
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.camera_refinement import CameraRefinement, rotation_matrices
+from ngp_warp.data.cameras import generate_rays
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.data.loading import load_scene
+from ngp_warp.ops.field import FieldConfig
+from ngp_warp.training.trainer import Trainer
 from test_train import tiny_config, tiny_scene  # noqa: F401 (fixture)
 
 
@@ -108,8 +108,8 @@ def test_a_views_fitted_pose_turns_back_towards_the_true_one(tiny_scene):  # noq
     pose turned by 2°. Rotation and a sideways shift look alike in a narrow view, so the test
     compares images: the right half at the fitted pose matches far better than at the turned one
     (measured: 15.6 dB with a fitted code only, 31.7 dB with the pose fitted too)."""
-    from ngp_warp.appearance_fit import fit_appearance_and_pose, fit_appearance_code, right_half
-    from ngp_warp.metrics import psnr
+    from ngp_warp.training.appearance_fit import fit_appearance_and_pose, fit_appearance_code, right_half
+    from ngp_warp.outputs.metrics import psnr
 
     cfg = tiny_config(300)
     cfg.field.appearance_dim = 8
@@ -137,7 +137,7 @@ def test_a_views_fitted_pose_turns_back_towards_the_true_one(tiny_scene):  # noq
 
 
 def test_evaluation_of_a_refined_run_fits_each_views_pose(tiny_scene, tmp_path):  # noqa: F811
-    from ngp_warp.evaluate import evaluate
+    from ngp_warp.outputs.evaluate import evaluate
 
     cfg = tiny_config(20)
     cfg.camera_refinement, cfg.field.appearance_dim = True, 4

@@ -11,8 +11,8 @@ from data_fixtures import random_c2w
 
 from ngp_warp import _wp
 from ngp_warp._reference.cameras import distort, fisheye_distort, project
-from ngp_warp.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, fisheye_ray, generate_rays, undistort, view_rays
-from ngp_warp.data import Split
+from ngp_warp.data.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, fisheye_ray, generate_rays, undistort, view_rays
+from ngp_warp.data.loading import Split
 from ngp_warp.kernels import batch as K
 
 OPENCV = [-0.15, 0.03, -0.004, 0.0, 0.004, -0.003]

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from ngp_warp.data import load_scene
-from ngp_warp.scene import write_demo_scene
-from ngp_warp.scene_defaults import choose_aabb_scale, choose_contraction, plain_backdrop, seen_aabb_scale
-from ngp_warp.scene_unbounded import environment_colours, render_unbounded_rays, write_unbounded_scene
+from ngp_warp.data.loading import load_scene
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.training.scene_defaults import choose_aabb_scale, choose_contraction, plain_backdrop, seen_aabb_scale
+from ngp_warp.data.scene_unbounded import environment_colours, render_unbounded_rays, write_unbounded_scene
 
 _spec = importlib.util.spec_from_file_location("capture_scenes",
                                                Path(__file__).parents[1] / "benchmarks" / "capture_scenes.py")

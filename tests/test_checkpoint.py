@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from ngp_warp.checkpoint import FORMAT, CheckpointError, load_trainer, read_checkpoint, save_checkpoint
-from ngp_warp.config import device_defaults, pixel_matched_resolution
-from ngp_warp.data import load_scene
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.checkpoint import FORMAT, CheckpointError, load_trainer, read_checkpoint, save_checkpoint
+from ngp_warp.training.config import device_defaults, pixel_matched_resolution
+from ngp_warp.data.loading import load_scene
+from ngp_warp.training.trainer import Trainer
 from test_train import tiny_config, tiny_scene  # noqa: F401  (tiny_scene: a fixture)
 
 
@@ -174,7 +174,7 @@ def test_checkpoint_from_before_sub_rays_loads_as_one_ray_per_pixel(tiny_scene, 
     del state["train_config"]["supersample"]
     torch.save(state, tmp_path / "c.pt")
     # resolve unset settings as CUDA would (2×2 sub-rays), on the CPU
-    monkeypatch.setattr("ngp_warp.config.device_defaults", lambda cfg, _: device_defaults(cfg, "cuda"))
+    monkeypatch.setattr("ngp_warp.training.config.device_defaults", lambda cfg, _: device_defaults(cfg, "cuda"))
     assert Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu").config.supersample == 2
     loaded, _ = load_trainer(tmp_path / "c.pt", device="cpu")
     assert loaded.config.supersample == 1

@@ -7,8 +7,8 @@ import torch
 
 from ngp_warp import _wp
 from ngp_warp.cli import main
-from ngp_warp.data import load_scene
-from ngp_warp.scene import write_demo_scene
+from ngp_warp.data.loading import load_scene
+from ngp_warp.data.scene import write_demo_scene
 
 FAST = ["--device", "cpu", "--quiet", "--target-samples", "4096"]
 
@@ -91,7 +91,7 @@ def test_cuda_request_without_gpu_is_one_line(scene, tmp_path, capsys):
 
 
 def test_resume_keeps_the_recorded_downscale(scene, tmp_path):
-    from ngp_warp.checkpoint import read_checkpoint
+    from ngp_warp.training.checkpoint import read_checkpoint
 
     out = tmp_path / "run"
     common = ["--no-video", *FAST]

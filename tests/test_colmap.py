@@ -10,8 +10,8 @@ import pytest
 import torch
 from data_fixtures import COLMAP_TEST_PARAMS, colmap_scene, write_colmap, write_json
 
-from ngp_warp.colmap import camera_to_world, colmap_to_transforms, read_colmap_model
-from ngp_warp.data import DataError, image_rays, load_scene
+from ngp_warp.data.colmap import camera_to_world, colmap_to_transforms, read_colmap_model
+from ngp_warp.data.loading import DataError, image_rays, load_scene
 
 
 def _rotation(qvec):
@@ -115,7 +115,7 @@ def test_downscale_reads_images_n_when_there(tmp_path):
 def test_missing_images_are_skipped_and_the_transforms_dict_round_trips(tmp_path, caplog):
     colmap_scene(tmp_path, "OPENCV_FISHEYE", n=6)
     (tmp_path / "images" / "frame_03.png").unlink()
-    with caplog.at_level(logging.WARNING, logger="ngp_warp.data"):
+    with caplog.at_level(logging.WARNING, logger="ngp_warp.data.loading"):
         direct = load_scene(tmp_path)
     assert len(caplog.records) == 1 and "skipped 1 of 6 frames whose image is missing" in caplog.messages[0]
     meta = colmap_to_transforms(read_colmap_model(tmp_path / "sparse" / "0"))

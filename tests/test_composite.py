@@ -3,7 +3,7 @@ import torch
 
 from ngp_warp import composite
 from ngp_warp._reference import composite as composite_ref
-from ngp_warp.composite import ray_offsets_from_indices
+from ngp_warp.ops.composite import ray_offsets_from_indices
 
 
 def packed_rays(n_rays=96, max_per_ray=48, device="cpu"):

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from ngp_warp import contraction as C
+from ngp_warp.ops import contraction as C
 from ngp_warp._reference import contraction as ref
 
 KINDS = ("l2", "linf")
@@ -167,8 +167,8 @@ def test_cuda_matches_cpu(kind):
                                  [0.0, 0.0, 0.0, 1.0, 1.0, 0.0]])
 def test_boxes_without_volume_are_refused_everywhere(box):
     """contract/uncontract, the field and the occupancy grid share one check of their box's values."""
-    from ngp_warp.field import FieldConfig, NGPField
-    from ngp_warp.occupancy import OccupancyGrid
+    from ngp_warp.ops.field import FieldConfig, NGPField
+    from ngp_warp.ops.occupancy import OccupancyGrid
 
     aabb = torch.tensor(box)
     x = torch.rand(4, 3)

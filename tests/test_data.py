@@ -12,7 +12,7 @@ import pytest
 import torch
 from data_fixtures import fov_to_focal, instant_ngp, nerf_synthetic, random_c2w, write_json
 
-from ngp_warp.data import (DataError, Split, downscale_image, image_rays, load_scene, normalisation_record,
+from ngp_warp.data.loading import (DataError, Split, downscale_image, image_rays, load_scene, normalisation_record,
                            write_normalisation)
 
 FOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "fox"
@@ -311,7 +311,7 @@ def test_frames_whose_image_is_missing_are_skipped_with_one_warning(tmp_path, ca
     meta, _ = instant_ngp(tmp_path, n=9)
     for i in (2, 5, 6):
         next((tmp_path / "images").glob(f"{i:04d}.*")).unlink()
-    with caplog.at_level(logging.WARNING, logger="ngp_warp.data"):
+    with caplog.at_level(logging.WARNING, logger="ngp_warp.data.loading"):
         scene = load_scene(tmp_path, holdout_every=3)
     assert len(caplog.records) == 1
     assert "transforms.json: skipped 3 of 9 frames whose image is missing (first: " in caplog.records[0].message
@@ -337,7 +337,7 @@ def test_normalisation_record_is_written_whole(tmp_path):
 @pytest.mark.skipif(not (FOX / "transforms.json").is_file(),
                     reason="instant-ngp's fox sample is not in ../shared/data/fox")
 def test_instant_ngp_fox_loads_as_shipped(caplog):
-    with caplog.at_level(logging.WARNING, logger="ngp_warp.data"):
+    with caplog.at_level(logging.WARNING, logger="ngp_warp.data.loading"):
         scene = load_scene(FOX, downscale=8)
     assert len(caplog.records) == 1 and "skipped 17 of 67 frames whose image is missing" in caplog.records[0].message
     assert len(scene.train) + len(scene.test) == 50 and scene.source == "instant-ngp"

@@ -6,7 +6,7 @@ import torch
 from ngp_warp import composite
 from ngp_warp._reference import composite as composite_ref
 from ngp_warp._reference import distortion as distortion_ref
-from ngp_warp.distortion import distortion_loss, distortion_loss_packed
+from ngp_warp.ops.distortion import distortion_loss, distortion_loss_packed
 
 
 def packed_samples(counts, n_padding=0, seed=0):

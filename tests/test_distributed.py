@@ -1,4 +1,4 @@
-"""Data-parallel training with 2 gloo ranks on the CPU (ngp_warp.distributed): the same
+"""Data-parallel training with 2 gloo ranks on the CPU (ngp_warp.training.distributed): the same
 parameters as one process on the combined batch, grid updates that agree, one stopping step."""
 
 import dataclasses
@@ -9,14 +9,14 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from ngp_warp.batch import sample_pixels
-from ngp_warp.config import TrainConfig
-from ngp_warp.data import load_scene
-from ngp_warp.distributed import make_data_parallel
-from ngp_warp.field import FieldConfig
-from ngp_warp.occupancy import OccupancyGrid
-from ngp_warp.scene import write_demo_scene
-from ngp_warp.trainer import Trainer
+from ngp_warp.ops.batch import sample_pixels
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.data.loading import load_scene
+from ngp_warp.training.distributed import make_data_parallel
+from ngp_warp.ops.field import FieldConfig
+from ngp_warp.ops.occupancy import OccupancyGrid
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.training.trainer import Trainer
 
 STEPS = 17  # crosses the grid refresh at step 16, the lr warm-up and the average's decay schedule
 PIXELS = 128  # the combined batch; each of the 2 ranks trains on one half

@@ -169,7 +169,7 @@ def test_hash_grid_takes_batches_float64_and_names_a_bad_dtype():
 
 
 def test_composite_is_a_torch_library_op_that_compiles_without_graph_breaks():
-    from ngp_warp.composite import _composite_op, _ray_offsets_op
+    from ngp_warp.ops.composite import _composite_op, _ray_offsets_op
 
     n_rays, s = 5, 40
     sigmas, rgbs, t0, t1, ray_indices = packed(3, n_rays, s)
@@ -234,7 +234,7 @@ def test_nerfacc_options_alpha_thre_per_ray_interval_and_normalised_depth():
 
 
 def test_nerfacc_helpers_match_the_composite():
-    from ngp_warp.volume_rendering import accumulate_along_rays, alphas_and_transmittance, rendering
+    from ngp_warp.ops.volume_rendering import accumulate_along_rays, alphas_and_transmittance, rendering
 
     n_rays = 6
     sigmas, rgbs, t0, t1, ray_indices = packed(4, n_rays, 50, first_ray=1)  # ray 0 has none
@@ -263,7 +263,7 @@ def test_nerfacc_helpers_match_the_composite():
 def test_the_encoding_compiles_without_graph_breaks():
     import copy
 
-    from ngp_warp.hashgrid_autograd import _encode_op
+    from ngp_warp.ops.hashgrid_autograd import _encode_op
 
     enc = HashGridEncoding(n_levels=4, log2_hashmap_size=8, base_resolution=4)
     with torch.no_grad():

@@ -9,9 +9,9 @@ import torch
 from ngp_warp import _wp
 from ngp_warp._reference.export import points_occupied as points_occupied_ref
 from ngp_warp._reference.scene import albedo, object_distances, scene_sdf
-from ngp_warp.export import crop_to_occupied, extract_mesh, point_cloud, vertex_normals
+from ngp_warp.outputs.export import crop_to_occupied, extract_mesh, point_cloud, vertex_normals
 from ngp_warp.kernels import scene as S
-from ngp_warp.occupancy import OccupancyGrid
+from ngp_warp.ops.occupancy import OccupancyGrid
 
 BOX = torch.tensor([-S.BOUND] * 3 + [S.BOUND] * 3)
 DIAGONAL = 2 * S.BOUND * math.sqrt(3)
@@ -209,11 +209,11 @@ def test_export_command_refuses_bad_outputs_before_loading(tmp_path):
 def test_trained_demo_mesh_lies_on_the_analytic_surface(tmp_path):
     """1000 CPU steps on a small demo scene (300 gave a mean distance of 0.059, over the bound),
     meshed through the export path at the default threshold."""
-    from ngp_warp.demo import demo_config
-    from ngp_warp.data import load_scene
-    from ngp_warp.export import default_threshold
-    from ngp_warp.scene import write_demo_scene
-    from ngp_warp.trainer import Trainer
+    from ngp_warp.training.demo import demo_config
+    from ngp_warp.data.loading import load_scene
+    from ngp_warp.outputs.export import default_threshold
+    from ngp_warp.data.scene import write_demo_scene
+    from ngp_warp.training.trainer import Trainer
 
     scene = load_scene(write_demo_scene(tmp_path / "scene", width=64, height=64, n_train=30, n_test=2))
     trainer = Trainer(scene, demo_config("cpu", 1000, None, 0), device="cpu")
@@ -231,12 +231,12 @@ def test_training_points_of_a_refined_run_come_from_its_refined_poses(tmp_path):
     training points are those of the same field seen from the refined cameras."""
     from dataclasses import replace
 
-    from ngp_warp.config import TrainConfig
-    from ngp_warp.data import load_scene
-    from ngp_warp.export import training_points
-    from ngp_warp.field import FieldConfig
-    from ngp_warp.scene import write_demo_scene
-    from ngp_warp.trainer import Trainer
+    from ngp_warp.training.config import TrainConfig
+    from ngp_warp.data.loading import load_scene
+    from ngp_warp.outputs.export import training_points
+    from ngp_warp.ops.field import FieldConfig
+    from ngp_warp.data.scene import write_demo_scene
+    from ngp_warp.training.trainer import Trainer
 
     scene = load_scene(write_demo_scene(tmp_path / "scene", width=24, height=24, n_train=6, n_test=1, supersample=1))
     config = TrainConfig(steps=60, target_samples=1 << 13, grid_resolution=32, steps_per_diagonal=256,

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from ngp_warp._reference import field as field_ref
-from ngp_warp.field import FieldConfig, NGPField, density_from_log, spherical_harmonics_deg4, trunc_exp
+from ngp_warp.ops.field import FieldConfig, NGPField, density_from_log, spherical_harmonics_deg4, trunc_exp
 
 
 def test_spherical_harmonics_are_orthonormal():

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from ngp_warp._reference import contraction as contraction_ref
-from ngp_warp.field import FieldConfig, NGPField
+from ngp_warp.ops.field import FieldConfig, NGPField
 
 CFG = FieldConfig(n_levels=4, log2_hashmap_size=12, hidden=16, finest_resolution=64.0)
 INNER = torch.tensor([-4.0, -3.0, -4.0, 4.0, 5.0, 4.0])
@@ -73,7 +73,7 @@ def test_bad_settings_raise():
 def test_the_field_checks_its_box_once_so_calls_do_not_read_it():
     """The contraction reads its box (a GPU sync, fatal in CUDA-graph capture) unless told the box
     was checked: the field checks it at construction and not per call."""
-    from ngp_warp.contraction import contract
+    from ngp_warp.ops.contraction import contract
 
     x = torch.rand(16, 3) * 4 - 2
     bad = torch.tensor([0.0, 0.0, 0.0, float("nan"), 1.0, 1.0])

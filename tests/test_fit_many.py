@@ -9,7 +9,7 @@ import pytest
 
 from ngp_warp.cli import main
 from ngp_warp.cli.fit_many import finished_metrics, read_manifest, FitManyError
-from ngp_warp.scene import write_demo_scene
+from ngp_warp.data.scene import write_demo_scene
 
 TINY = ["--device", "cpu", "--quiet", "--no-video", "--target-samples", "1024", "--set", "grid_resolution=16",
         "--set", "field.log2_hashmap_size=12", "--set", "field.n_levels=4", "--set", "field.hidden=16"]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ngp_warp.cli import main
-from ngp_warp.scene import write_demo_scene
+from ngp_warp.data.scene import write_demo_scene
 
 CPU = ["--device", "cpu", "--quiet", "--no-video"]
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from ngp_warp._reference import gather as ref
-from ngp_warp.gather import gather_rows, scatter_rows
+from ngp_warp.ops.gather import gather_rows, scatter_rows
 
 CASES = [  # (shape, dtype): h in bf16, positions, sigmas, int64 indices, int32 offsets, bool (fallback), odd bf16
     ((500, 16), torch.bfloat16), ((500, 3), torch.float32), ((500,), torch.float32), ((500,), torch.int64),

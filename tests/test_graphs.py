@@ -4,11 +4,11 @@ captured march + composite + backward replayed on new rays equal to the eager op
 import pytest
 import torch
 
-from ngp_warp.field import FieldConfig, NGPField
-from ngp_warp.bench import make_rays, scene_grid
-from ngp_warp.composite import composite_packed
-from ngp_warp.graphs import GraphedDensity, bucket_size, capture_graph
-from ngp_warp.raymarch import ray_marching
+from ngp_warp.ops.field import FieldConfig, NGPField
+from ngp_warp.outputs.bench import make_rays, scene_grid
+from ngp_warp.ops.composite import composite_packed
+from ngp_warp.ops.graphs import GraphedDensity, bucket_size, capture_graph
+from ngp_warp.ops.raymarch import ray_marching
 
 
 def test_bucket_sizes_cover_n_with_at_most_a_sixteenth_to_spare():

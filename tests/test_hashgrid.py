@@ -9,7 +9,7 @@ import torch
 
 from ngp_warp import HashGridEncoding
 from ngp_warp._reference.hashgrid import encode_like
-from ngp_warp.hashgrid import level_table
+from ngp_warp.ops.hashgrid import level_table
 
 
 def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -199,7 +199,7 @@ def test_gradcheck_params_and_x():
 
 
 def encode_fn(enc, x, params):
-    from ngp_warp.hashgrid_autograd import HashGridFunction
+    from ngp_warp.ops.hashgrid_autograd import HashGridFunction
 
     return HashGridFunction.apply(x, params, enc)
 

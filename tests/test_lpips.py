@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from ngp_warp import lpips
+from ngp_warp.outputs import lpips
 
 
 def fake_install(tmp_path, monkeypatch, packages=("torchmetrics", "torchvision"), head=True, backbone=True):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ngp_warp.metrics import psnr, ssim
+from ngp_warp.outputs.metrics import psnr, ssim
 
 
 def _images(h=32, w=40, c=3, seed=0):

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from ngp_warp._reference import optim as optim_ref
-from ngp_warp.optim import LazyAdam
+from ngp_warp.ops.optim import LazyAdam
 
 
 def sparse_grads(n: int, steps: int, seed: int = 0) -> list[torch.Tensor]:

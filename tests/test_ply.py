@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from ngp_warp.ply import read_ply, write_ply
+from ngp_warp.outputs.ply import read_ply, write_ply
 
 
 def test_mesh_round_trip_and_header(tmp_path):

@@ -14,12 +14,12 @@ pytest.importorskip("imageio_ffmpeg")
 
 import imageio.v3 as iio  # noqa: E402
 
-from ngp_warp import process as P  # noqa: E402
+from ngp_warp.data import process as P  # noqa: E402
 from ngp_warp.cli.process import add_process_parser  # noqa: E402
-from ngp_warp import scene as demo  # noqa: E402
-from ngp_warp import video as V  # noqa: E402
+from ngp_warp.data import scene as demo  # noqa: E402
+from ngp_warp.data import video as V  # noqa: E402
 from ngp_warp.cli import main  # noqa: E402
-from ngp_warp.data_error import DataError  # noqa: E402
+from ngp_warp.data.data_error import DataError  # noqa: E402
 
 N_VIEWS, SIZE = 40, 256
 

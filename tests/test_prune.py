@@ -6,7 +6,7 @@ import torch
 
 from ngp_warp import MarchOptions, prune_samples, render_rays
 from ngp_warp._reference import prune as prune_ref
-from ngp_warp.raymarch import RaySamples
+from ngp_warp.ops.raymarch import RaySamples
 
 from test_render import camera_rays, sphere_field, sphere_grid
 

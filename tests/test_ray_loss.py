@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from ngp_warp._reference import ray_loss as ray_loss_ref
-from ngp_warp.ray_loss import ray_loss
+from ngp_warp.ops.ray_loss import ray_loss
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)]
 

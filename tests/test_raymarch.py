@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-import ngp_warp.raymarch as raymarch
+import ngp_warp.ops.raymarch as raymarch
 from ngp_warp import MarchOptions, OccupancyGrid, ray_marching
 from ngp_warp._reference import occupancy as occupancy_ref
 from ngp_warp._reference import raymarch as raymarch_ref

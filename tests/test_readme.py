@@ -32,7 +32,7 @@ def test_readme_render_example_trains():
 @pytest.mark.cuda
 def test_readme_graph_example_replays_new_rays():
     import ngp_warp
-    from ngp_warp.bench import make_rays, scene_grid
+    from ngp_warp.outputs.bench import make_rays, scene_grid
 
     text = README.read_text()
     code = re.findall(r"## Embedding the render op.*?```python\n.*?```.*?```python\n(.*?)```", text, re.S)[0]

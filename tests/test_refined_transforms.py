@@ -7,9 +7,9 @@ import pytest
 import torch
 from data_fixtures import colmap_scene, instant_ngp, nerf_synthetic
 
-from ngp_warp.camera_refinement import rotation_matrices
-from ngp_warp.data import load_scene
-from ngp_warp.refined_transforms import REFINED_TRANSFORMS, refined_transforms
+from ngp_warp.training.camera_refinement import rotation_matrices
+from ngp_warp.data.loading import load_scene
+from ngp_warp.training.refined_transforms import REFINED_TRANSFORMS, refined_transforms
 
 
 def knocked(c2w: torch.Tensor, seed: int) -> torch.Tensor:

@@ -8,16 +8,16 @@ import copy
 import pytest
 import torch
 
-from ngp_warp.cameras import generate_rays
-from ngp_warp.config import TrainConfig
-from ngp_warp.data import load_scene
-from ngp_warp.field import FieldConfig, NGPField
-from ngp_warp.model import RadianceModel
-from ngp_warp.prune import prune_samples
-from ngp_warp.raymarch import ray_marching
-from ngp_warp.renderer import ChunkSizer, _marched_rows, auto_first_round, render_view
-from ngp_warp.scene import write_demo_scene
-from ngp_warp.trainer import Trainer
+from ngp_warp.data.cameras import generate_rays
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.data.loading import load_scene
+from ngp_warp.ops.field import FieldConfig, NGPField
+from ngp_warp.training.model import RadianceModel
+from ngp_warp.ops.prune import prune_samples
+from ngp_warp.ops.raymarch import ray_marching
+from ngp_warp.outputs.renderer import ChunkSizer, _marched_rows, auto_first_round, render_view
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.training.trainer import Trainer
 
 W, H = 20, 16
 

@@ -14,13 +14,13 @@ import pytest
 import torch
 
 from ngp_warp.atomic import atomic_dir, atomic_write_text, remove_stale_partials
-from ngp_warp.checkpoint import CheckpointError, NonFiniteWeights, load_trainer, save_checkpoint
-from ngp_warp.config import TrainConfig, apply_overrides
-from ngp_warp.data import load_scene
-from ngp_warp.evaluate import finite_or_null
-from ngp_warp.memory_estimate import SettingsTooLarge, check_fits, samples_per_ray
-from ngp_warp.run_folder import RunFolder, RunFolderError, Terminated, sigterm_as_interrupt
-from ngp_warp.trainer import Trainer, TrainingDiverged
+from ngp_warp.training.checkpoint import CheckpointError, NonFiniteWeights, load_trainer, save_checkpoint
+from ngp_warp.training.config import TrainConfig, apply_overrides
+from ngp_warp.data.loading import load_scene
+from ngp_warp.outputs.evaluate import finite_or_null
+from ngp_warp.training.memory_estimate import SettingsTooLarge, check_fits, samples_per_ray
+from ngp_warp.training.run_folder import RunFolder, RunFolderError, Terminated, sigterm_as_interrupt
+from ngp_warp.training.trainer import Trainer, TrainingDiverged
 from data_fixtures import instant_ngp
 from test_train import tiny_config, tiny_scene  # noqa: F401  (tiny_scene: a fixture)
 
@@ -175,7 +175,7 @@ def test_rescaled_w_h_warns_once_and_scales_the_intrinsics(tmp_path, caplog):
     meta, _ = instant_ngp(tmp_path / "s", n=7, size=(8, 6))
     meta.update(w=16, h=12, fl_x=10.0, fl_y=10.0, cx=8.0, cy=6.0)
     (tmp_path / "s" / "transforms.json").write_text(json.dumps(meta))
-    with caplog.at_level(logging.WARNING, logger="ngp_warp.data"):
+    with caplog.at_level(logging.WARNING, logger="ngp_warp.data.loading"):
         scene = load_scene(tmp_path / "s")
     warnings = [r for r in caplog.records if "w x h = 16x12 but the image is 8x6" in r.message]
     assert len(warnings) == 2  # one per split

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-import ngp_warp.scene as demo
-import ngp_warp.scene_folder as scene_folder
+import ngp_warp.data.scene as demo
+import ngp_warp.data.scene_folder as scene_folder
 from ngp_warp._reference import scene as ref
-from ngp_warp.data import DataError, image_rays, load_scene
+from ngp_warp.data.loading import DataError, image_rays, load_scene
 
 TINY = dict(width=16, height=12, n_train=3, n_test=2, supersample=2)
 

@@ -6,12 +6,12 @@ import math
 import pytest
 import torch
 
-from ngp_warp.config import TrainConfig, resolve_defaults
-from ngp_warp.data import DataError, load_scene
-from ngp_warp.scene_defaults import (appearance_dim, cameras_surround_centre, choose_contraction, cone_steps,
+from ngp_warp.training.config import TrainConfig, resolve_defaults
+from ngp_warp.data.loading import DataError, load_scene
+from ngp_warp.training.scene_defaults import (appearance_dim, cameras_surround_centre, choose_contraction, cone_steps,
                                      distortion_weight, occupancy_threshold,
                                      contraction_box)
-from ngp_warp.scene_unbounded import write_unbounded_scene
+from ngp_warp.data.scene_unbounded import write_unbounded_scene
 
 
 def look_at(eyes, target, up=(0.0, 0.0, 1.0)):
@@ -78,7 +78,7 @@ def test_bad_contraction_key_is_one_line_data_error(tmp_path):
 
 
 def test_nerf_synthetic_scenes_get_no_distortion_loss(tmp_path):
-    from ngp_warp.scene import write_demo_scene
+    from ngp_warp.data.scene import write_demo_scene
 
     scene = load_scene(write_demo_scene(tmp_path / "demo", width=8, height=8, n_train=3, n_test=1))
     assert scene.source == "nerf-synthetic" and distortion_weight(scene, None) == 0.0

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-import ngp_warp.scene_folder as scene_folder
-import ngp_warp.scene_unbounded as unbounded
+import ngp_warp.data.scene_folder as scene_folder
+import ngp_warp.data.scene_unbounded as unbounded
 from ngp_warp._reference import scene_unbounded as ref
-from ngp_warp.data import load_scene
-from ngp_warp.data_error import DataError
+from ngp_warp.data.loading import load_scene
+from ngp_warp.data.data_error import DataError
 from ngp_warp.kernels import scene_unbounded as K
 
 TINY = dict(width=16, height=12, n_train=3, n_test=2, supersample=2)

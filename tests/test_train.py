@@ -8,14 +8,14 @@ from collections import Counter
 import pytest
 import torch
 
-from ngp_warp.config import TrainConfig, apply_overrides, device_defaults, pixel_matched_resolution
-from ngp_warp.data import load_scene
-from ngp_warp.evaluate import iter_test_renders
-from ngp_warp.field import FieldConfig
-from ngp_warp.metrics import psnr
-from ngp_warp.scene import CAMERA_ANGLE_X, CAMERA_RADIUS, write_demo_scene
-from ngp_warp.train_step import StepPhases
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.config import TrainConfig, apply_overrides, device_defaults, pixel_matched_resolution
+from ngp_warp.data.loading import load_scene
+from ngp_warp.outputs.evaluate import iter_test_renders
+from ngp_warp.ops.field import FieldConfig
+from ngp_warp.outputs.metrics import psnr
+from ngp_warp.data.scene import CAMERA_ANGLE_X, CAMERA_RADIUS, write_demo_scene
+from ngp_warp.training.train_step import StepPhases
+from ngp_warp.training.trainer import Trainer
 
 
 @pytest.fixture(scope="module")

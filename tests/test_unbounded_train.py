@@ -7,15 +7,15 @@ import json
 import pytest
 import torch
 
-from ngp_warp.config import TrainConfig, apply_overrides, resolve_defaults
-from ngp_warp.data import image_rays, load_scene
-from ngp_warp.evaluate import evaluate, iter_test_renders
-from ngp_warp.field import FieldConfig
-from ngp_warp.metrics import psnr
-from ngp_warp.scene import write_demo_scene
-from ngp_warp.scene_defaults import CONE_ANGLE, contraction_box, cone_steps
-from ngp_warp.scene_unbounded import write_unbounded_scene
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.config import TrainConfig, apply_overrides, resolve_defaults
+from ngp_warp.data.loading import image_rays, load_scene
+from ngp_warp.outputs.evaluate import evaluate, iter_test_renders
+from ngp_warp.ops.field import FieldConfig
+from ngp_warp.outputs.metrics import psnr
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.training.scene_defaults import CONE_ANGLE, contraction_box, cone_steps
+from ngp_warp.data.scene_unbounded import write_unbounded_scene
+from ngp_warp.training.trainer import Trainer
 
 
 @pytest.fixture(scope="module")

@@ -12,18 +12,18 @@ import pytest
 import torch
 
 from browser import CHROMIUM, DevTools, wait_for
-from ngp_warp.camera_path import matrix_from_quat
-from ngp_warp.checkpoint import save_checkpoint
+from ngp_warp.outputs.camera_path import matrix_from_quat
+from ngp_warp.training.checkpoint import save_checkpoint
 from ngp_warp.cli import main
-from ngp_warp.config import TrainConfig
-from ngp_warp.data import load_scene
-from ngp_warp.field import FieldConfig
-from ngp_warp.scene import write_demo_scene
-from ngp_warp.trainer import Trainer
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.data.loading import load_scene
+from ngp_warp.ops.field import FieldConfig
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.training.trainer import Trainer
 
 viser = pytest.importorskip("viser")
 from ngp_warp.cli.view import load_target  # noqa: E402
-from ngp_warp.viewer import Viewer, c2w_from_viser, to_image, view_size, viser_from_c2w  # noqa: E402
+from ngp_warp.viewer.server import Viewer, c2w_from_viser, to_image, view_size, viser_from_c2w  # noqa: E402
 
 
 def tiny_config(steps: int) -> TrainConfig:

@@ -1,5 +1,5 @@
 """Float64 forward camera models (world -> pixel), the closed forms that
-:mod:`ngp_warp.cameras` and the Warp ray kernel invert. Tests only."""
+:mod:`ngp_warp.data.cameras` and the Warp ray kernel invert. Tests only."""
 
 from __future__ import annotations
 

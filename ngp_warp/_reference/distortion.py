@@ -1,4 +1,4 @@
-"""Float64 pure-torch twin of :func:`ngp_warp.distortion.distortion_loss` (tests only)."""
+"""Float64 pure-torch twin of :func:`ngp_warp.ops.distortion.distortion_loss` (tests only)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Pure-torch twins of :mod:`ngp_warp.gather`, one row at a time (tests only)."""
+"""Pure-torch twins of :mod:`ngp_warp.ops.gather`, one row at a time (tests only)."""
 
 from __future__ import annotations
 

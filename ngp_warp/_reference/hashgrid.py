@@ -1,4 +1,4 @@
-"""Pure-torch twin of the hash-grid encoding (``ngp_warp/hashgrid.py``, ``kernels/hashgrid.py``),
+"""Pure-torch twin of the hash-grid encoding (``ngp_warp/ops/hashgrid.py``, ``kernels/hashgrid.py``),
 float64 by default.
 
 Same semantics as tiny-cuda-nn's ``HashGrid``: the cell and the fraction within it come from
@@ -38,7 +38,7 @@ def encode(
     """Encode ``x`` ``[N, D]`` with the flat table ``params``: ``[N, L*F]`` in ``dtype``.
 
     ``scales``, ``resolutions``, ``offsets`` (``L + 1`` entries) and ``hashed`` are the level
-    constants of ``ngp_warp.hashgrid.level_table``. ``x`` values must be float32-representable
+    constants of ``ngp_warp.ops.hashgrid.level_table``. ``x`` values must be float32-representable
     (the cell is chosen from their float32 value, and the fraction rounded as the kernel's);
     ``exact`` computes cell and fraction from ``x`` in ``dtype`` instead, so that the encoding is
     a smooth function of ``x`` within a cell (for ``gradcheck``).

@@ -1,4 +1,4 @@
-"""Float64 pure-torch twin of :class:`ngp_warp.optim.LazyAdam` (tests only)."""
+"""Float64 pure-torch twin of :class:`ngp_warp.ops.optim.LazyAdam` (tests only)."""
 
 from __future__ import annotations
 

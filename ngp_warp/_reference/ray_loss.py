@@ -1,4 +1,4 @@
-"""Float64 pure-torch twin of :func:`ngp_warp.ray_loss.ray_loss` (tests only)."""
+"""Float64 pure-torch twin of :func:`ngp_warp.ops.ray_loss.ray_loss` (tests only)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 
 def ray_loss(rgb, opacity, target, background, ray_mask=None, extra=None, extra_weight: float = 0.0,
              huber_delta: float | None = None, rays_per_pixel: int = 1):
-    """(loss, mse) of :func:`ngp_warp.ray_loss.ray_loss` in float64 torch (differentiable)."""
+    """(loss, mse) of :func:`ngp_warp.ops.ray_loss.ray_loss` in float64 torch (differentiable)."""
     k = rays_per_pixel
     rgb, opacity = rgb.double().view(-1, k, 3).mean(1), opacity.double().view(-1, k).mean(1)
     extra = None if extra is None else extra.double().view(-1, k).mean(1)

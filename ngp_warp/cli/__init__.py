@@ -37,7 +37,7 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--target-samples", type=positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
-                             "(repeatable; see ngp_warp.config.TrainConfig)")
+                             "(repeatable; see ngp_warp.training.config.TrainConfig)")
         sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
         sp.add_argument("--frames", type=positive(int), default=60, help="orbit video frames")
         sp.add_argument("--overwrite", action="store_true", help="replace the run already in the output folder")
@@ -55,7 +55,7 @@ def _parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="generate the built-in procedural scene, train and evaluate on it")
     d.add_argument("--out", type=folder_name, default="ngp-warp-demo", help="output folder (default ./ngp-warp-demo)")
-    d.add_argument("--scene", choices=("demo", "unbounded"), default="demo",  # ngp_warp.demo.DEMOS
+    d.add_argument("--scene", choices=("demo", "unbounded"), default="demo",  # ngp_warp.training.demo.DEMOS
                    help="demo: objects in a box, white background; unbounded: the 360° scene (objects "
                         "on a ground plane to the horizon, learned background, contracted space)")
     training(d)
@@ -92,13 +92,13 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if getattr(args, "gpus", 1) > 1:  # run this command line as that many torchrun ranks
-        from ngp_warp.distributed import launch_ranks
+        from ngp_warp.training.distributed import launch_ranks
 
         return launch_ranks(args, sys.argv[1:] if argv is None else argv)
-    from ngp_warp.checkpoint import CheckpointError
-    from ngp_warp.data import DataError
-    from ngp_warp.memory_estimate import SettingsTooLarge
-    from ngp_warp.run_folder import SIGTERM_EXIT, RunFolderError, Terminated, sigterm_as_interrupt
+    from ngp_warp.training.checkpoint import CheckpointError
+    from ngp_warp.data.loading import DataError
+    from ngp_warp.training.memory_estimate import SettingsTooLarge
+    from ngp_warp.training.run_folder import SIGTERM_EXIT, RunFolderError, Terminated, sigterm_as_interrupt
 
     try:
         with sigterm_as_interrupt():

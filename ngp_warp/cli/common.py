@@ -21,7 +21,7 @@ class UserError(Exception):
 
 def resolve_device(name: str | None) -> str:
     from ngp_warp import _wp
-    from ngp_warp.config import default_device
+    from ngp_warp.training.config import default_device
 
     if name in (None, "auto"):
         return default_device()
@@ -70,7 +70,7 @@ def output_file(out_dir: Path, name: str, flag: str, suffixes: tuple[str, ...]) 
 
 def with_settings(cfg, args):
     """``cfg`` with ``--target-samples`` and the ``--set KEY=VALUE`` settings applied."""
-    from ngp_warp.config import apply_overrides
+    from ngp_warp.training.config import apply_overrides
 
     if args.target_samples:
         cfg.target_samples = args.target_samples
@@ -83,14 +83,14 @@ def with_settings(cfg, args):
 
 
 def train_config(args, device: str | None = None):  # device: resolved already, else args.device's
-    from ngp_warp.config import TrainConfig, cpu_sizes
+    from ngp_warp.training.config import TrainConfig, cpu_sizes
     cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
     return with_settings(cpu_sizes(cfg) if (device or resolve_device(args.device)) == "cpu" else cfg, args)  # --set wins
 
 
 def new_trainer(scene, config, device: str):
     """A Trainer; its ValueErrors, which name a setting that does not suit the scene, as UserError."""
-    from ngp_warp.trainer import Trainer
+    from ngp_warp.training.trainer import Trainer
     try:
         return Trainer(scene, config, device=device)
     except ValueError as e:
@@ -99,9 +99,9 @@ def new_trainer(scene, config, device: str):
 
 def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
     """Train (or resume), checkpoint, evaluate and render into ``out`` (a folder of one run:
-    :class:`ngp_warp.run_folder.RunFolder`)."""
-    from ngp_warp.data import load_scene
-    from ngp_warp.run_folder import RunFolder
+    :class:`ngp_warp.training.run_folder.RunFolder`)."""
+    from ngp_warp.data.loading import load_scene
+    from ngp_warp.training.run_folder import RunFolder
 
     device = resolve_device(args.device)
     out = Path(out)
@@ -119,11 +119,11 @@ def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
 
 
 def _run(scene, scene_path: Path, folder, args, device: str, config, resume: bool) -> dict:
-    from ngp_warp.checkpoint import load_trainer, save_checkpoint
-    from ngp_warp.camera_path import around_cameras
-    from ngp_warp.video_out import render_trainer_video
-    from ngp_warp.evaluate import evaluate
-    from ngp_warp.refined_transforms import write_refined_transforms
+    from ngp_warp.training.checkpoint import load_trainer, save_checkpoint
+    from ngp_warp.outputs.camera_path import around_cameras
+    from ngp_warp.outputs.video_out import render_trainer_video
+    from ngp_warp.outputs.evaluate import evaluate
+    from ngp_warp.training.refined_transforms import write_refined_transforms
 
     out = folder.path
     ckpt = out / CHECKPOINT
@@ -139,7 +139,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     else:
         trainer = new_trainer(scene, config, device)
     if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
-        from ngp_warp.distributed import is_main_rank, make_data_parallel
+        from ngp_warp.training.distributed import is_main_rank, make_data_parallel
 
         make_data_parallel(trainer)
         if not is_main_rank():
@@ -177,8 +177,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
 def _train(trainer, save, folder, args) -> None:
     """Train, saving every ``--checkpoint-every`` seconds and on Ctrl-C or SIGTERM (then
     re-raised); a diverged run stops with one line, its last good checkpoint kept."""
-    from ngp_warp.run_folder import Terminated
-    from ngp_warp.trainer import TrainingDiverged
+    from ngp_warp.training.run_folder import Terminated
+    from ngp_warp.training.trainer import TrainingDiverged
 
     ckpt = folder.path / CHECKPOINT
     try:

@@ -8,9 +8,9 @@ from ngp_warp.cli.common import CHECKPOINT, print_metrics, resolve_device, writa
 
 def cmd_eval(args) -> None:
     from ngp_warp.atomic import remove_stale_partials
-    from ngp_warp.checkpoint import load_trainer
-    from ngp_warp.evaluate import evaluate
-    from ngp_warp.run_folder import check_output_names
+    from ngp_warp.training.checkpoint import load_trainer
+    from ngp_warp.outputs.evaluate import evaluate
+    from ngp_warp.training.run_folder import check_output_names
 
     check_output_names(Path(args.dir))  # e.g. renders/ that is a file: refused before loading
     trainer, _ = load_trainer(Path(args.dir) / CHECKPOINT, device=resolve_device(args.device), scene_path=args.scene)

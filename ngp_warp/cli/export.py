@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ngp_warp.cli.common import CHECKPOINT, UserError, output_file, resolve_device
-from ngp_warp.export import default_threshold, extract_mesh, training_points
+from ngp_warp.outputs.export import default_threshold, extract_mesh, training_points
 
 def add_export_parser(subparsers, positive_int, positive_float):
     """The ``export`` sub-command (``positive_int``/``positive_float``: the CLI's argparse
@@ -25,8 +25,8 @@ def add_export_parser(subparsers, positive_int, positive_float):
 
 
 def cmd_export(args) -> None:
-    from ngp_warp.checkpoint import load_trainer
-    from ngp_warp.ply import write_ply
+    from ngp_warp.training.checkpoint import load_trainer
+    from ngp_warp.outputs.ply import write_ply
 
     if not args.mesh and not args.points:
         raise UserError("export: nothing to export (give --mesh OUT.ply and/or --points OUT.ply)")

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from ngp_warp.cli.common import CHECKPOINT, UserError, train_and_report, train_config, writable_dir
-from ngp_warp.data_error import DataError
+from ngp_warp.data.data_error import DataError
 
 SUMMARY = "summary.json"
 METRICS_KEYS = ("psnr", "steps", "train_seconds", "n_test_images", "per_image")
@@ -81,8 +81,8 @@ def finished_metrics(run_dir: Path) -> dict | None:
 
 def remaining_budget(args, checkpoint: Path) -> tuple[int | None, float | None]:
     """(steps, seconds) left of the command line's budget after the run saved in ``checkpoint``."""
-    from ngp_warp.checkpoint import read_checkpoint
-    from ngp_warp.config import TrainConfig
+    from ngp_warp.training.checkpoint import read_checkpoint
+    from ngp_warp.training.config import TrainConfig
 
     state = read_checkpoint(checkpoint)
     steps, seconds = TrainConfig(steps=args.steps, seconds=args.seconds).budget()
@@ -94,9 +94,9 @@ def fit_scene(scene: Path, run_dir: Path, args) -> dict:
     """Train, evaluate and render one scene into ``run_dir`` (skipped when finished, resumed
     from its checkpoint); its row of the summary. A user mistake in the scene is one printed
     line and a ``failed`` row."""
-    from ngp_warp.checkpoint import CheckpointError
-    from ngp_warp.data import DataError
-    from ngp_warp.run_folder import RunFolderError
+    from ngp_warp.training.checkpoint import CheckpointError
+    from ngp_warp.data.loading import DataError
+    from ngp_warp.training.run_folder import RunFolderError
 
     row = {"scene": scene.name, "path": str(scene), "run": str(run_dir)}
     metrics = finished_metrics(run_dir)
@@ -145,7 +145,7 @@ def _all_rows(rows: list[dict]) -> list[dict]:
 
 def cmd_fit_many(args) -> None:
     from ngp_warp.atomic import atomic_write_text
-    from ngp_warp.distributed import FIT_MANY_TIMEOUT, is_main_rank, join, rank_and_size, started_by_torchrun
+    from ngp_warp.training.distributed import FIT_MANY_TIMEOUT, is_main_rank, join, rank_and_size, started_by_torchrun
 
     scenes = read_manifest(args.manifest)  # bad input: one line before anything is written
     try:

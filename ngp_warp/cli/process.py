@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from ngp_warp.data_error import DataError
-from ngp_warp.process import CAMERA_MODELS, EXHAUSTIVE_MAX, EXTRA, MAPPERS, SIFT_KINDS, ProcessConfig, process, require_pycolmap
+from ngp_warp.data.data_error import DataError
+from ngp_warp.data.process import CAMERA_MODELS, EXHAUSTIVE_MAX, EXTRA, MAPPERS, SIFT_KINDS, ProcessConfig, process, require_pycolmap
 
 def add_process_parser(subparsers) -> None:
     """Register ``process`` on the CLI's subparsers."""

@@ -20,8 +20,8 @@ def add_path_arguments(parser: argparse.ArgumentParser, positive_int, positive_f
 
 
 def cmd_render(args) -> None:
-    from ngp_warp.checkpoint import load_trainer
-    from ngp_warp.video_out import PATH_KINDS, camera_path_from_args, depth_path, render_trainer_video
+    from ngp_warp.training.checkpoint import load_trainer
+    from ngp_warp.outputs.video_out import PATH_KINDS, camera_path_from_args, depth_path, render_trainer_video
 
     video = output_file(Path(args.dir), args.video, "--video", (".mp4", ".gif"))  # before any work
     if args.depth_video:

@@ -14,7 +14,7 @@ def cmd_train(args) -> None:
     if args.resume and args.overwrite:
         raise UserError("--resume with --overwrite: continue the run in --out, or replace it, not both")
     config = None if args.resume else train_config(args)  # bad settings fail before any loading
-    from ngp_warp.distributed import join_data_parallel
+    from ngp_warp.training.distributed import join_data_parallel
 
     args.data_parallel = join_data_parallel(args)  # under torchrun: this rank's device in args.device
     metrics = train_and_report(scene, Path(args.out), args, config=config)
@@ -23,8 +23,8 @@ def cmd_train(args) -> None:
 
 
 def cmd_demo(args) -> None:
-    from ngp_warp.demo import DEMOS
-    from ngp_warp.run_folder import RunFolder
+    from ngp_warp.training.demo import DEMOS
+    from ngp_warp.training.run_folder import RunFolder
 
     # every option is checked before the scene is generated
     device = resolve_device(args.device)

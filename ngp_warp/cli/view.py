@@ -32,8 +32,8 @@ def add_view_parser(subparsers, positive_int):
 
 def load_target(args, device: str):
     """(trainer, live) for ``args.target``: a run folder's checkpoint, or a scene to train live."""
-    from ngp_warp.checkpoint import load_trainer
-    from ngp_warp.data import load_scene
+    from ngp_warp.training.checkpoint import load_trainer
+    from ngp_warp.data.loading import load_scene
 
     target = Path(args.target)
     if (target / CHECKPOINT).is_file():
@@ -49,7 +49,7 @@ def cmd_view(args) -> None:
         import viser  # noqa: F401  (the viewer extra)
     except ImportError:
         raise UserError("view needs viser: pip install 'ngp-warp[viewer]'") from None
-    from ngp_warp.viewer import Viewer
+    from ngp_warp.viewer.server import Viewer
 
     device = resolve_device(args.device)
     trainer, live = load_target(args, device)

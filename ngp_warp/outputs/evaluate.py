@@ -1,0 +1,167 @@
+"""Evaluation (PSNR, SSIM and LPIPS when available, on the test split, white background; with
+appearance codes on the right half of each view, its code fitted on the left), renders and depth maps."""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from ngp_warp.progress import progress
+
+from ngp_warp.training.appearance_fit import (FIT_ITERATIONS, fit_appearance_and_pose, fit_appearance_code,
+                                     nearest_training_code, right_half)
+from ngp_warp.atomic import atomic_dir, atomic_write_text
+from ngp_warp.outputs.lpips import lpips_or_reason, lpips_summary
+from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr, ssim
+from ngp_warp.training.trainer import Trainer
+
+
+def composite_on(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """Images as the renders are scored against them: [..., 3|4] uint8 pixels → [..., 3]
+    float32 in [0, 1], alpha blended over ``background`` ([3] or broadcastable float)."""
+    px = rgba.float() / 255.0
+    if px.shape[-1] == 3:
+        return px
+    a = px[..., 3:]
+    return px[..., :3] * a + background * (1.0 - a)
+
+
+def to_uint8(img: torch.Tensor) -> np.ndarray:
+    return (img.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
+    """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8."""
+    d = depth / opacity.clamp_min(1e-6)
+    mask = opacity > 0.5
+    if mask.any():
+        lo, hi = d[mask].min(), d[mask].max()
+        d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
+    return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
+
+
+def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1, fit_appearance: bool = False,
+                      nearest_code: bool = False):
+    """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th view of
+    ``split`` (default: the test split), rendered (``spp`` as in ``Trainer.render_image``) and
+    composited on white; where the field learns the background (``Trainer.black_background``:
+    contracted scenes, opaque images) over its learned environment (black for a field without
+    one: ``Trainer.view_background``). With appearance codes
+    every view is rendered with the mean code of the training images, with ``nearest_code`` the
+    code of the training camera nearest to it (:func:`~ngp_warp.training.appearance_fit.nearest_training_code`),
+    or, with ``fit_appearance``, with the code fitted on the left half of its ground truth
+    (:func:`~ngp_warp.training.appearance_fit.fit_appearance_code`, in the render dict as
+    ``appearance_code`` [A]): score such a view on the right half only
+    (:func:`~ngp_warp.training.appearance_fit.right_half`). When the run refined its training cameras
+    (``camera_refinement``), whose corrections move the scene's frame a little, the fit takes the
+    view's pose as well (:func:`~ngp_warp.training.appearance_fit.fit_appearance_and_pose`)."""
+    split = trainer.scene.test if split is None else split
+    white = torch.ones(3, device=trainer.device)
+    background = trainer.view_background
+    fit = fit_appearance and trainer.field.appearance is not None
+    for i in range(0, len(split.names), every):
+        camera = split.camera(i)
+        gt = composite_on(split.images[i].to(trainer.device), white)
+        code = None
+        if nearest_code and trainer.field.appearance is not None and not fit:
+            code = nearest_training_code(trainer, camera["c2w"])
+        if fit and trainer.cameras is not None:
+            code, c2w = fit_appearance_and_pose(trainer, **camera, image=gt, background=background)
+            camera = {**camera, "c2w": c2w}
+        elif fit:
+            code = fit_appearance_code(trainer, **camera, image=gt, background=background)
+        out = trainer.render_image(**camera, background=background, spp=spp, appearance_code=code)
+        if fit:
+            out["appearance_code"] = code
+        yield split.names[i], out, gt
+
+
+def _scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[dict, str]:
+    """PSNR, SSIM (None below an 11-pixel window) and LPIPS (None and the reason when it cannot
+    be computed) of rgb against gt ([H, W, 3] float32 in [0, 1])."""
+    s = ssim(rgb, gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
+    lpips, lpips_note = lpips_or_reason(rgb, gt)
+    return {"psnr": psnr(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
+
+
+def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
+    """Render every test view, score it, write renders/ depth/ and metrics.json.
+
+    With per-image appearance codes a test view has no code of its own: it is rendered with the
+    code fitted on the left half of its image and scored (psnr, ssim, lpips) on the right half,
+    which the fit did not see, as nerfstudio does. Its whole image is scored twice: with the
+    code of the nearest training camera (``psnr_nearest_code``) and with the mean training code
+    (``psnr_mean_code``); metrics.json's ``appearance`` says so. renders/ holds the fitted code's
+    whole images."""
+    out_dir = Path(out_dir)
+    fitted = trainer.field.appearance is not None
+    views = iter_test_renders(trainer, fit_appearance=fitted)
+    whole_views = zip(iter_test_renders(trainer), iter_test_renders(trainer, nearest_code=True)) if fitted else \
+        itertools.repeat(None)
+    per_image = []
+    bar = progress(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
+    with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
+        for (name, out, gt), whole in zip(views, whole_views):
+            stem = Path(name).stem
+            if fitted:
+                scores, lpips_note = _scores(right_half(out["rgb"]), right_half(gt))
+                scores["psnr_mean_code"] = psnr(whole[0][1]["rgb"], gt)
+                scores["psnr_nearest_code"] = psnr(whole[1][1]["rgb"], gt)
+            else:
+                scores, lpips_note = _scores(out["rgb"], gt)
+            per_image.append({"image": name, **scores})
+            iio.imwrite(renders / f"{stem}.png", to_uint8(out["rgb"]))
+            iio.imwrite(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
+            bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
+            bar.update()
+        bar.close()
+    posed = " and pose" if trainer.cameras is not None else ""
+    appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations), scored on "
+                                f"the right half; whole images with the nearest training camera's code "
+                                f"(psnr_nearest_code) and the mean code (psnr_mean_code)",
+                  **{key: float(np.mean([m[key] for m in per_image])) for key in ("psnr_nearest_code", "psnr_mean_code")}
+                  } if fitted else {}
+    metrics = {
+        "psnr": float(np.mean([m["psnr"] for m in per_image])),
+        "ssim": None if per_image[0]["ssim"] is None else float(np.mean([m["ssim"] for m in per_image])),
+        **lpips_summary([m["lpips"] for m in per_image], lpips_note),
+        "train_seconds": trainer.train_seconds,
+        "steps": trainer.step_count,
+        "train_samples_per_ray": trainer.target_samples / trainer.rays.n_rays,
+        "device": str(trainer.device),
+        "test_split": "held-out training frames" if trainer.scene.test_is_heldout else "test",
+        "n_test_images": len(per_image),
+        **appearance,
+        "per_image": per_image,
+    }
+    metrics = finite_or_null(metrics)
+    atomic_write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False))
+    return metrics
+
+
+def finite_or_null(metrics: dict) -> dict:
+    """``metrics`` with every NaN or infinite number (nested ones too) replaced by None, and a
+    ``notes`` entry naming them, so that the JSON is strict (no bare NaN)."""
+    replaced = []
+
+    def clean(value, where: str):
+        if isinstance(value, float) and not np.isfinite(value):
+            replaced.append(f"{where} ({value})")
+            return None
+        if isinstance(value, dict):
+            return {k: clean(v, f"{where}.{k}" if where else k) for k, v in value.items()}
+        if isinstance(value, list):
+            return [clean(v, f"{where}[{i}]") for i, v in enumerate(value)]
+        return value
+
+    cleaned = clean(metrics, "")
+    if replaced:
+        note = f"not finite, written as null: {', '.join(replaced[:5])}{' ...' if len(replaced) > 5 else ''}"
+        cleaned["notes"] = [*cleaned.get("notes", []), note]
+    return cleaned
+

@@ -1,0 +1,147 @@
+"""Checkpoints: everything needed to resume training, evaluate or render, saved atomically.
+
+A checkpoint is a dict saved by ``torch.save``: ``format``, ``scene`` (the scene folder,
+downscale and :func:`scene_fingerprint`), ``train_config`` (the resolved :class:`~ngp_warp.training.config.TrainConfig` as a dict),
+the keys of :meth:`Trainer.state_dict <ngp_warp.training.trainer.Trainer.state_dict>` and ``rng`` (torch's
+CPU generator state).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+import torch
+
+from ngp_warp.atomic import atomic_file
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.data.loading import DataError, Scene, load_scene
+from ngp_warp.ops.field import FieldConfig
+from ngp_warp.training.trainer import Trainer
+
+FORMAT = "ngp-warp-checkpoint-v1"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, unreadable or not ours; the message is one line."""
+
+
+class NonFiniteWeights(CheckpointError):
+    """The weights to save hold NaN or infinity (training diverged); nothing was written."""
+
+
+def scene_fingerprint(scene: Scene) -> dict:
+    """What identifies a scene's training split wherever its folder lies: ``views``, ``width``,
+    ``height`` and ``digest`` (SHA-1 of the image file names and the camera poses)."""
+    split = scene.train
+    digest = hashlib.sha1()
+    for name in split.names:
+        digest.update(Path(name).name.encode() + b"\0")
+    digest.update(np.round(split.c2w.double().cpu().numpy(), 5).tobytes())
+    return {"views": len(split.names), "width": split.width, "height": split.height, "digest": digest.hexdigest()}
+
+
+def _check_finite(state: dict, path: Path) -> None:
+    floats = [t for t in state["field"].values() if t.is_floating_point()]
+    if not bool(torch.stack([torch.isfinite(t).all() for t in floats]).all()):  # one sync
+        raise NonFiniteWeights(f"the weights at step {state['step']} are not finite (training diverged); "
+                               f"not saved, {path} keeps the last good checkpoint, if any")
+
+
+def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: int,
+                    before_write: Callable[[], None] | None = None) -> None:
+    """Write ``path`` atomically (temporary file, then rename); :class:`NonFiniteWeights`,
+    writing nothing, when the field's weights hold NaN or infinity. ``before_write`` is called
+    once the weights are known good, before anything is written."""
+    state = {
+        "format": FORMAT,
+        "scene": {"path": str(Path(scene_path).resolve()), "downscale": int(downscale),
+                  **scene_fingerprint(trainer.scene)},
+        "train_config": asdict(trainer.config),
+        **trainer.state_dict(),
+        "rng": torch.get_rng_state(),
+    }
+    _check_finite(state, Path(path))
+    if before_write is not None:
+        before_write()
+    with atomic_file(path) as tmp:
+        torch.save(state, tmp)
+
+
+def read_checkpoint(path: Path) -> dict:
+    """The checkpoint dict in ``path`` (tensors on the CPU); CheckpointError if there is none
+    or it is not ours."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no checkpoint there (train first: ngp-warp train SCENE --out DIR)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # torch raises many kinds for a damaged file
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__})") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not an ngp-warp checkpoint")
+    return state
+
+
+def _train_config(path: Path, saved: dict) -> TrainConfig:
+    """The checkpoint's settings; CheckpointError for a setting this version does not have or
+    accept. Checkpoints without sub-rays trained one ray per pixel, those without
+    ``distortion_spacing`` took the distortion loss in world distances, and those without
+    ``field.environment`` had no learned environment, those without ``aabb_scale`` the box of
+    the scene's files."""
+    saved = {"supersample": 1, "distortion_spacing": "world", "aabb_scale": None, **saved}
+    try:
+        config = TrainConfig(**{**saved, "field": FieldConfig(**{"environment": False, **saved["field"]})})
+        config.check()
+    except TypeError as e:  # a setting this version does not have
+        raise CheckpointError(f"{path}: written by another ngp-warp version ({e})") from None
+    except ValueError as e:  # a setting this version does not accept
+        raise CheckpointError(f"{path}: {e}") from None
+    return config
+
+
+def _check_same_scene(path: Path, record: dict, scene: Scene) -> None:
+    """CheckpointError when ``scene`` is not the one the checkpoint trained on (checkpoints
+    from before fingerprints are not checked)."""
+    if "digest" not in record:
+        return
+    mine = scene_fingerprint(scene)
+    if mine != {key: record[key] for key in mine}:
+        raise CheckpointError(
+            f"{record['path']} is not the scene {path} was trained on ({mine['views']} training views "
+            f"{mine['width']}x{mine['height']} there, {record['views']} views {record['width']}x{record['height']} "
+            f"in the checkpoint, or other cameras)")
+
+
+def _restore(trainer: Trainer, state: dict, path: Path) -> None:
+    try:
+        trainer.load_state_dict(state)
+        torch.set_rng_state(state["rng"])
+    except (RuntimeError, TypeError, ValueError, AttributeError, IndexError) as e:
+        reason = " ".join(str(e).split())[:160]
+        raise CheckpointError(f"{path}: its saved tensors do not fit its settings ({reason})") from None
+
+
+def load_trainer(path: Path, device: str | None = None, scene_path: Path | None = None) -> tuple[Trainer, dict]:
+    """Rebuild the trainer saved in ``path`` (its scene is re-read from the recorded folder,
+    or ``scene_path``, which must hold the same views and cameras). Returns the trainer and the
+    checkpoint's scene record; CheckpointError for a checkpoint that does not fit."""
+    state = read_checkpoint(path)
+    try:
+        record = dict(state["scene"])
+        if scene_path is not None:
+            record["path"] = str(Path(scene_path).resolve())
+        try:
+            scene = load_scene(record["path"], downscale=record["downscale"])
+        except DataError as e:
+            raise CheckpointError(f"{path}: cannot reload its scene: {e}") from None
+        _check_same_scene(path, record, scene)
+        trainer = Trainer(scene, _train_config(path, state["train_config"]), device=device)
+        _restore(trainer, state, path)
+    except KeyError as e:  # a part this version saves and the file lacks
+        raise CheckpointError(f"{path}: written by another ngp-warp version (no {e.args[0]!r} in it)") from None
+    return trainer, record

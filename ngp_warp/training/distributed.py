@@ -1,0 +1,239 @@
+"""Data-parallel training on torch.distributed: NCCL between GPUs, gloo between CPU processes.
+
+``torchrun --nproc-per-node N -m ngp_warp.cli train SCENE ...`` (or ``--gpus N``, which runs
+torchrun through :func:`launch`) starts N ranks. Each holds the whole model and draws its own rays
+(its own seed stream) from the shared training images; after each backward the gradients are
+averaged over the ranks, so every rank applies the same update and the models stay equal:
+
+.. math::
+
+    g = \\frac{1}{N} \\sum_r g_r, \\qquad g_r = \\nabla_\\theta \\, \\mathrm{loss}_r
+
+Each rank's loss is the mean over its own pixels, so with equal batches :math:`g` is the gradient
+of the mean over all of them. An entry stays exactly zero where it is zero on every rank, so the
+lazy table Adam still skips it. The MLPs' gradients are copied into one flat buffer as soon as
+backward has finished them, the hash table's is reduced in place when it is done; both
+reductions run while the step goes on and the deferred optimizer update waits for them.
+Occupancy-grid updates take each cell's max over the ranks. The learning-rate schedule and the
+time budget follow rank 0's clock, broadcast every ``READOUT_EVERY`` steps with the progress
+readout. Rank 0 alone shows progress, evaluates and writes checkpoints; a checkpoint holds no
+per-rank state, so ``--resume`` works with any number of ranks.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import sys
+from functools import partial
+
+import torch
+import torch.distributed as dist
+
+from ngp_warp.training.trainer import READOUT_EVERY, Trainer
+
+FIT_MANY_TIMEOUT = datetime.timedelta(days=30)  # a rank waits at the end for the slowest one
+
+
+def rank_and_size() -> tuple[int, int]:
+    """(this process's rank, number of ranks): (0, 1) outside a process group."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def is_main_rank() -> bool:
+    """Whether this process shows progress and writes outputs (rank 0, or the only process)."""
+    return rank_and_size()[0] == 0
+
+
+def started_by_torchrun() -> bool:
+    """Whether torchrun started this process as one of several ranks (WORLD_SIZE > 1)."""
+    return int(os.environ.get("WORLD_SIZE", "1")) > 1
+
+
+def join(device: str, backend: str | None = None, timeout: datetime.timedelta | None = None) -> str:
+    """Join the process group torchrun set up (``env://``) and return this rank's device:
+    ``cuda:LOCAL_RANK`` for a CUDA ``device`` (``auto``: CUDA when present), else ``cpu``.
+    ``backend`` defaults to NCCL on CUDA and gloo on the CPU."""
+    from ngp_warp.training.config import default_device
+
+    device = default_device() if device in (None, "auto") else device
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    if device.startswith("cuda"):
+        device = f"cuda:{local_rank}"
+        torch.cuda.set_device(local_rank)
+    if not dist.is_initialized():
+        backend = backend or ("nccl" if device.startswith("cuda") else "gloo")
+        dist.init_process_group(backend, timeout=timeout)
+    return device
+
+
+def leave() -> None:
+    """Leave the process group, if this process joined one."""
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def join_data_parallel(args) -> bool:
+    """``train`` under torchrun with more than one rank: join the group, put this rank's device
+    in ``args.device`` and return True; otherwise False."""
+    if not started_by_torchrun():
+        return False
+    args.device = join(args.device)
+    return True
+
+
+def launch_ranks(args, argv: list[str]) -> int:
+    """``--gpus N``: run the command line ``argv`` (without ``--gpus``) as N ranks under
+    torchrun, one GPU each (N CPU processes with ``--device cpu``); the exit code of
+    :func:`launch`, or 2 after one line when N does not fit the machine."""
+    error = None
+    if started_by_torchrun():
+        error = "torchrun already started the ranks (drop --gpus)"
+    elif args.device != "cpu":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count < args.gpus:
+            error = f"this machine has {count} CUDA GPU(s) (with --device cpu: {args.gpus} CPU processes)"
+    if error is not None:
+        print(f"ngp-warp: error: --gpus {args.gpus}: {error}", file=sys.stderr)
+        return 2
+    rest, i = [], 0
+    while i < len(argv):  # argv without "--gpus N" / "--gpus=N"
+        if argv[i] == "--gpus":
+            i += 1
+        elif not argv[i].startswith("--gpus="):
+            rest.append(argv[i])
+        i += 1
+    return launch(args.gpus, rest)
+
+
+def launch(n_processes: int, argv: list[str]) -> int:
+    """Run ``python -m ngp_warp.cli *argv`` as ``n_processes`` ranks under torchrun
+    (``torch.distributed.run --standalone``). Returns 0, 2 when every failed rank exited with 2
+    (a user mistake, already reported by the ranks in one line each) or 1."""
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.run import get_args_parser, run
+
+    options = get_args_parser().parse_args(
+        ["--standalone", f"--nproc-per-node={n_processes}", "--module", "ngp_warp.cli", *argv])
+    try:
+        run(options)
+    except ChildFailedError as e:
+        codes = {failure.exitcode for failure in e.failures.values()}
+        return 2 if codes == {2} else 1
+    return 0
+
+
+class GradientReducer:
+    """Averages the field's gradients over the ranks in two buckets, launched in this order as
+    soon as backward has finished each (post-accumulate-grad hooks): the MLPs' (and appearance
+    codes'), copied into one flat float32 buffer, then the hash table's, in place.
+
+    :meth:`finish` (after every backward, on every rank, also without one) launches what the
+    hooks did not, with zero gradients where a parameter got none; :meth:`wait` (before the
+    optimizer reads them) waits for the reductions and copies the flat buffer back.
+    """
+
+    def __init__(self, field: torch.nn.Module):
+        self.world_size = dist.get_world_size()
+        self.buckets = [list(field.mlp_parameters()), list(field.encoding.parameters())]
+        covered = {id(p) for bucket in self.buckets for p in bucket}
+        if covered != {id(p) for p in field.parameters()}:
+            raise ValueError("the field has parameters outside its MLPs and hash table")
+        device = self.buckets[0][0].device
+        self._flat = torch.empty(sum(p.numel() for p in self.buckets[0]), dtype=torch.float32, device=device)
+        self._ready: list[set[int]] = [set() for _ in self.buckets]
+        self._launched = 0  # buckets launched this step, in order
+        self._in_flight: list[tuple[int, dist.Work]] = []
+        for index, bucket in enumerate(self.buckets):
+            for p in bucket:
+                p.register_post_accumulate_grad_hook(partial(self._on_gradient, index))
+
+    def _on_gradient(self, index: int, param: torch.Tensor) -> None:
+        self._ready[index].add(id(param))
+        while self._launched < len(self.buckets) and \
+                len(self._ready[self._launched]) == len(self.buckets[self._launched]):
+            self._launch(self._launched)
+
+    def _launch(self, index: int) -> None:
+        bucket = self.buckets[index]
+        for p in bucket:
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+        if len(bucket) == 1:
+            tensor = bucket[0].grad
+        else:
+            tensor = torch.cat([p.grad.reshape(-1) for p in bucket], out=self._flat)
+        tensor.mul_(1.0 / self.world_size)
+        self._in_flight.append((index, dist.all_reduce(tensor, async_op=True)))
+        self._launched += 1
+
+    def finish(self) -> None:
+        """Launch the buckets backward did not complete (all of them after a step without
+        samples) and start the next step's count."""
+        while self._launched < len(self.buckets):
+            self._launch(self._launched)
+        self._launched = 0
+        for ready in self._ready:
+            ready.clear()
+
+    def wait(self) -> None:
+        """Wait for the launched reductions; the averaged gradients are then in ``p.grad``."""
+        for index, work in self._in_flight:
+            work.wait()
+            bucket = self.buckets[index]
+            if len(bucket) > 1:
+                views = [v.view_as(p) for v, p in zip(self._flat.split([p.numel() for p in bucket]), bucket)]
+                torch._foreach_copy_([p.grad for p in bucket], views)
+        self._in_flight.clear()
+
+
+class RankZeroClock:
+    """Rank 0's training seconds, broadcast every ``READOUT_EVERY`` steps (only when the budget
+    is in seconds): every rank sees the same learning-rate schedule and stops at the same step."""
+
+    def __init__(self, trainer: Trainer):
+        self.trainer = trainer
+        self._seconds = torch.zeros(1, dtype=torch.float64, device=trainer.device)
+        self._agreed = trainer.train_seconds
+
+    def __call__(self, step: int) -> float:
+        """The training seconds all ranks agree on at ``step``."""
+        if self.trainer.config.seconds is not None and step % READOUT_EVERY == 0:
+            self._seconds.fill_(self.trainer.train_seconds)
+            dist.broadcast(self._seconds, src=0)
+            self._agreed = float(self._seconds)
+        return self._agreed
+
+
+def broadcast_state(trainer: Trainer) -> None:
+    """Copy rank 0's field, grid and weight average to every rank."""
+    tensors = list(trainer.field.state_dict().values()) + list(trainer.grid.state_dict().values())
+    tensors += trainer.weights.averaged or []
+    for t in tensors:
+        dist.broadcast(t.data, src=0)
+
+
+def all_reduce_max(values: torch.Tensor) -> None:
+    """Each element's max over the ranks, in place."""
+    dist.all_reduce(values, op=dist.ReduceOp.MAX)
+
+
+def make_data_parallel(trainer: Trainer) -> GradientReducer:
+    """Turn ``trainer`` into this rank's part of data-parallel training (a process group must be
+    initialized): rank 0's state on every rank, this rank's ray stream, the gradient reduction
+    after each backward (waited before each optimizer update), the grid updates' max over the
+    ranks and rank 0's clock. Returns the reducer. ValueError (one line) for a trainer with
+    camera refinement, whose pose corrections the reduction does not share."""
+    if trainer.cameras is not None:
+        raise ValueError("camera_refinement is not supported with data-parallel training (--gpus > 1)")
+    rank, _ = rank_and_size()
+    broadcast_state(trainer)
+    reducer = GradientReducer(trainer.field)
+    trainer.ray_stream = rank
+    trainer.gradient_reduction = reducer.finish
+    trainer.weights.before_update = reducer.wait
+    trainer.grid.merge_samples = all_reduce_max
+    trainer.shared_clock = RankZeroClock(trainer)
+    return reducer

@@ -1,0 +1,171 @@
+"""Per-scene defaults of the march and the field: cone steps, contraction, appearance codes.
+
+* Cone steps (instant-ngp's ``calc_dt``): scenes larger than the unit box (``aabb_scale`` > 1,
+  i.e. more than one occupancy cascade) and unbounded scenes step by
+  ``Δt = clamp(t / 256, √3/1024, √3)`` in instant-ngp unit-cube lengths: the finest cascade's
+  box diagonal / 1024 up to that whole diagonal (instant-ngp's ``MIN_CONE_STEPSIZE`` and
+  ``MAX_CONE_STEPSIZE`` with its 8 cascades of 128³ cells). NeRF-synthetic scenes keep fixed steps.
+* Contraction: the files' ``contraction`` key, else mip-NeRF 360's L2 contraction for captures
+  (not NeRF-synthetic) whose cameras surround a centre and look inward
+  (:func:`cameras_surround_centre`) and whose images show more than a plain backdrop
+  (:func:`plain_backdrop`), else none. Its inner box is the finest cascade's box, grown about
+  its centre to hold every training camera; the field learns the colour at infinity
+  (``FieldConfig.environment``).
+* Field box: a COLMAP capture of an object on a plain backdrop that trains bounded gets the box
+  its cameras see (:func:`choose_aabb_scale`), not the one holding its cameras.
+* Occupancy threshold: instant-ngp's 0.01 (optical thickness of one step) on NeRF-synthetic
+  renders; 0.05 on captures. On fox (H200, 60 s, RESULTS.md) 0.01 left 60 % of the
+  finest cascade's visible cells occupied: 67 trained samples per ray (median), about 4k rays
+  per step; 0.05 took it to 25 per ray and 10k rays per step at the same held-out PSNR
+  (28.21 → 27.7–28.0 dB, mean code), while lego at 0.05 stayed within 0.05 dB.
+* Appearance codes: 16 per training image for captures (exposure and white balance vary),
+  none for NeRF-synthetic renders.
+* Distortion loss (mip-NeRF 360), in its normalised distance s = 1 − near/t: weight 4e-3 on
+  bounded captures, 0 elsewhere. On fox (H200, 60 s, RESULTS.md) the loss thins the
+  semi-transparent floaters in front of the training cameras that some held-out views see
+  (7.6 → 2 % of view 0089's rays): none 30.28 dB (five seeds), world-space 1e-4 31.09 (eight),
+  normalised 4e-3 31.27 (eight). World-space 5e-4 put more weight in front (29.45
+  over five). On the contracted unbounded scene world-space 1e-4 cost about 2.5 dB and
+  normalised 4e-3 neither cost nor gained (runs there differ by up to 5 dB), so it stays off.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ngp_warp.data.loading import Scene
+from ngp_warp.data.transforms_json import CONTRACTIONS
+
+CONE_ANGLE = 1.0 / 256.0  # instant-ngp's cone angle for aabb_scale > 1
+SYNTHETIC_OCCUPANCY_THRESHOLD = 0.01  # instant-ngp's NERF_MIN_OPTICAL_THICKNESS
+CAPTURE_OCCUPANCY_THRESHOLD = 0.05
+APPEARANCE_DIM = 16
+CAPTURE_DISTORTION_WEIGHT = 4e-3  # with distortion_spacing 'normalised'
+_MIN_CAMERAS = 8  # fewer cameras never count as surrounding a centre
+_MAX_RESULTANT = 0.5  # |mean horizontal direction from the centre to the cameras|: 0 for a ring
+_MIN_INWARD = 0.8  # mean cosine between a camera's view axis and its direction to the centre
+_BACKDROP_SHARE = 0.98  # share of the images' edge pixels within _BACKDROP_TOLERANCE of one colour
+_BACKDROP_TOLERANCE = 8  # in 8-bit levels, per channel
+
+
+def cone_steps(scene: Scene, contraction: str | None) -> tuple[float, float, float]:
+    """(cone_angle, min step, max step) in world lengths for ``scene``: (0, √3/1024·L, √3·L)
+    for one cascade without contraction, else (1/256, ...), L the finest cascade box's side."""
+    box = scene.occupancy_aabb.double()
+    diagonal = float((box[3:] - box[:3]).norm())
+    cone = CONE_ANGLE if scene.occupancy_levels > 1 or contraction is not None else 0.0
+    return cone, diagonal / 1024.0, diagonal
+
+
+def cameras_surround_centre(c2w: torch.Tensor) -> bool:
+    """Whether the cameras (``c2w`` [N, 3, 4] float, OpenGL: looking down −z) form a 360° capture:
+    at least 8 cameras; their centre q (the point nearest every view axis, least squares);
+    seen from q, the cameras' directions projected on the plane normal to the mean camera up
+    axis nearly cancel (mean vector shorter than 0.5; a full ring gives 0, a half circle
+    2/π ≈ 0.64); and they look at q (mean cosine between view axis and direction to q ≥ 0.8)."""
+    if c2w.shape[0] < _MIN_CAMERAS:
+        return False
+    m = c2w.double().cpu()
+    centres, forward = m[:, :, 3], -torch.nn.functional.normalize(m[:, :, 2], dim=-1)
+    projector = torch.eye(3, dtype=torch.float64) - forward[:, :, None] * forward[:, None, :]
+    q = torch.linalg.lstsq(projector.sum(0), (projector @ centres[:, :, None]).sum(0)).solution[:, 0]
+    outward = torch.nn.functional.normalize(centres - q, dim=-1)
+    inward = float(-(outward * forward).sum(-1).mean())
+    up = torch.nn.functional.normalize(m[:, :, 1].mean(0), dim=0)
+    flat = torch.nn.functional.normalize(outward - (outward @ up)[:, None] * up, dim=-1)
+    return inward >= _MIN_INWARD and float(flat.mean(0).norm()) < _MAX_RESULTANT
+
+
+def choose_contraction(setting: str | None, scene: Scene) -> str | None:
+    """The contraction to train with: ``setting`` itself (``"l2"``, ``"linf"`` or None), or with
+    ``"auto"`` the scene's own (see the module docstring)."""
+    if setting != "auto":
+        if setting is not None and setting not in CONTRACTIONS:
+            raise ValueError(f"contraction must be 'auto', None or one of {', '.join(CONTRACTIONS)}, got {setting!r}")
+        return setting
+    if scene.contraction is not None:
+        return scene.contraction
+    if scene.source != "nerf-synthetic" and cameras_surround_centre(scene.train.c2w):
+        return None if plain_backdrop(scene.train.images) else "l2"
+    return None
+
+
+def choose_aabb_scale(setting: int | str | None, scene: Scene, contraction: str | None) -> int | None:
+    """The field's box to train with, as instant-ngp's ``aabb_scale`` about the finest cascade's
+    box: ``setting`` itself (a power of two, or None for the box the scene's files give), or with
+    ``"auto"`` :func:`seen_aabb_scale` for a COLMAP capture that trains bounded around a plain
+    backdrop, else None. Such a capture has no sparse points beyond its subject, so the box
+    :func:`~ngp_warp.data.scene_normalisation.normalise_scene` picks holds the cameras (aabb_scale 4),
+    while the subject fills only what every camera sees."""
+    if setting != "auto":
+        return setting
+    object_on_backdrop = (scene.source == "colmap" and contraction is None
+                          and cameras_surround_centre(scene.train.c2w) and plain_backdrop(scene.train.images))
+    return seen_aabb_scale(scene) if object_on_backdrop else None
+
+
+def seen_aabb_scale(scene: Scene) -> int:
+    """The smallest power of two k for which the box k times the finest cascade's box (about its
+    centre) is as wide as the median training camera sees at that centre (its distance to it
+    times the tangent of half its narrower field of view, on either side), capped at the box
+    the scene's files give."""
+    box = scene.occupancy_aabb.double()
+    centre, unit = (box[:3] + box[3:]) / 2, float((box[3:] - box[:3]).max())
+    split = scene.train
+    distance = (split.c2w[:, :, 3].double() - centre).norm(dim=-1)
+    fx, fy = split.intrinsics[:, 0].double(), split.intrinsics[:, 1].double()
+    files = round(float((scene.aabb[3:] - scene.aabb[:3]).max()) / unit)
+    if split.fisheye:
+        return files
+    half_view = torch.minimum(split.width / (2 * fx), split.height / (2 * fy))  # tan(half field of view)
+    seen = 2 * float((distance * half_view).median())
+    return min(2 ** max(0, math.ceil(math.log2(max(seen / unit, 1.0)))), files)
+
+
+def edge_pixels(images: torch.Tensor) -> torch.Tensor:
+    """[P, 3] the RGB of every pixel on the outer edges of ``images`` ([N, H, W, C], any dtype;
+    corners counted twice), where a capture mostly sees what lies beyond its subject."""
+    edges = torch.cat([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
+    return edges[..., :3].reshape(-1, 3)
+
+
+def plain_backdrop(images: torch.Tensor) -> bool:
+    """Whether ``images`` ([N, H, W, C] uint8) show their subject on one plain colour, as
+    object captures composited on white (or masked onto any one colour) do: at least 98 % of the
+    pixels on the images' outer edges lie within 8 levels of their median colour in every
+    channel. Such a capture has nothing beyond its subject, so it trains bounded: contracted,
+    the demo scene on white as a COLMAP model scored 20.6 dB at 60 s on an H100 against 28.9
+    bounded, while over the unbounded scene's sky at infinity it scored 24.8 against 16.1."""
+    border = edge_pixels(images).to(torch.int16)
+    median = border.median(0).values
+    close = ((border - median).abs() <= _BACKDROP_TOLERANCE).all(-1)
+    return float(close.float().mean()) >= _BACKDROP_SHARE
+
+
+def contraction_box(scene: Scene) -> torch.Tensor:
+    """[6] float32 inner box of the contraction: the finest cascade's box, grown about its centre
+    (keeping its proportions) until it holds every training camera."""
+    box = scene.occupancy_aabb.double()
+    centre, half = (box[:3] + box[3:]) / 2, (box[3:] - box[:3]) / 2
+    reach = ((scene.train.c2w[:, :, 3].double() - centre).abs() / half).amax()
+    grow = max(1.0, float(reach) * 1.05)
+    return torch.cat([centre - half * grow, centre + half * grow]).float()
+
+
+def occupancy_threshold(scene: Scene) -> float:
+    """The occupancy grid's threshold for ``scene`` (see the module docstring)."""
+    return SYNTHETIC_OCCUPANCY_THRESHOLD if scene.source == "nerf-synthetic" else CAPTURE_OCCUPANCY_THRESHOLD
+
+
+def distortion_weight(scene: Scene, contraction: str | None) -> float:
+    """The distortion loss's weight for ``scene`` (see the module docstring)."""
+    bounded_capture = scene.source != "nerf-synthetic" and contraction is None
+    return CAPTURE_DISTORTION_WEIGHT if bounded_capture else 0.0
+
+
+def appearance_dim(scene: Scene) -> int:
+    """Appearance code size for ``scene``: 0 for NeRF-synthetic, else APPEARANCE_DIM."""
+    return 0 if scene.source == "nerf-synthetic" else APPEARANCE_DIM
+
