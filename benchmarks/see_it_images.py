@@ -1,4 +1,4 @@
-"""The README's "See it" pictures, from a trained demo run, on the CPU:
+"""The "See it" pictures of docs/outputs.md, from a trained demo run, on the CPU:
 
 * ``docs/viewer.png``: ``ngp-warp view RUN`` in headless Chromium (the first training camera);
 * ``docs/mesh.png``: ``ngp-warp export RUN --mesh mesh.ply`` shown in a bare viser scene.
