@@ -173,3 +173,39 @@ def test_cpu_training_gets_the_cpus_sizes_unless_set(scene, tmp_path, capsys):
     assert main(["train", str(scene), "--out", str(tmp_path / "set"), "--steps", "3", "--no-video",
                  "--set", "field.log2_hashmap_size=14", "--set", "grid_resolution=32", *FAST]) == 0
     assert "table 2^14 per level" in capsys.readouterr().err
+
+
+def test_a_run_inside_its_scene_folder_is_refused(scene, capsys):
+    for out in (scene, scene / "run"):
+        assert main(["train", str(scene), "--out", str(out), "--steps", "1", "--device", "cpu"]) == 2
+        assert "would be written into the dataset" in one_line_error(capsys)
+    assert not (scene / "run").exists() and not (scene / "checkpoint.pt").exists()
+
+
+def test_a_base_resolution_above_the_finest_level_is_refused(scene, tmp_path, capsys):
+    argv = ["train", str(scene), "--out", str(tmp_path / "o"), "--steps", "1", "--device", "cpu"]
+    assert main([*argv, "--set", "field.base_resolution=4096"]) == 2  # the finest level picked: about 64
+    assert "field.base_resolution 4096 is above the finest level's" in one_line_error(capsys)
+    assert main([*argv, "--set", "field.base_resolution=64", "--set", "field.finest_resolution=32"]) == 2
+    assert "the levels would grow coarser" in one_line_error(capsys)
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_demos_resume_hint_names_its_output_folder(tmp_path, capsys):
+    from argparse import Namespace
+    from types import SimpleNamespace
+
+    from ngp_warp.cli.common import _train
+
+    class Interrupted:
+        step_count = 7
+
+        def train(self, **_):
+            raise KeyboardInterrupt
+
+    folder = SimpleNamespace(path=tmp_path / "demo", claimed=True)
+    with pytest.raises(KeyboardInterrupt):  # the demo's args have no --resume
+        _train(Interrupted(), lambda: None, folder, Namespace(quiet=True, checkpoint_every=300.0),
+               tmp_path / "demo" / "scene")
+    hint = f"ngp-warp train {tmp_path / 'demo' / 'scene'} --out {tmp_path / 'demo'} --resume"
+    assert hint in capsys.readouterr().err

@@ -158,7 +158,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     def save() -> None:  # an overwritten run's outputs go just before the first (good) write
         save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim)
 
-    _train(trainer, save, folder, args)
+    _train(trainer, save, folder, args, scene_path)
     save()
     if trainer.cameras is not None:
         refined = write_refined_transforms(trainer, scene_path, downscale, out)
@@ -174,7 +174,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     return metrics
 
 
-def _train(trainer, save, folder, args) -> None:
+def _train(trainer, save, folder, args, scene_path: Path) -> None:
     """Train, saving every ``--checkpoint-every`` seconds and on Ctrl-C or SIGTERM (then
     re-raised); a diverged run stops with one line, its last good checkpoint kept."""
     from ngp_warp.training.run_folder import Terminated
@@ -186,7 +186,7 @@ def _train(trainer, save, folder, args) -> None:
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (main's sigterm_as_interrupt)
         save()
         how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
-        resume = "--resume" if hasattr(args, "resume") else f"ngp-warp train {folder.path / 'scene'} --resume"
+        resume = "--resume" if hasattr(args, "resume") else f"ngp-warp train {scene_path} --out {folder.path} --resume"
         print(f"ngp-warp: {how} at step {trainer.step_count}; checkpoint saved to {ckpt} "
               f"(continue with {resume})", file=sys.stderr)
         raise

@@ -13,6 +13,11 @@ def cmd_train(args) -> None:
         raise UserError("--set with --resume: a resumed run keeps the settings in its checkpoint")
     if args.resume and args.overwrite:
         raise UserError("--resume with --overwrite: continue the run in --out, or replace it, not both")
+    dataset = (scene if scene.is_dir() else scene.parent).resolve()
+    out = Path(args.out).resolve()
+    if out == dataset or dataset in out.parents:
+        raise UserError(f"--out {args.out}: inside the scene folder {scene}, so the run would be written into the "
+                        f"dataset (choose a folder outside it)")
     config = None if args.resume else train_config(args)  # bad settings fail before any loading
     from ngp_warp.training.distributed import join_data_parallel
 

@@ -74,6 +74,9 @@ class FieldConfig:
             raise ValueError(f"n_features_per_level must be 1, 2, 4 or 8, got {self.n_features_per_level!r}")
         if self.log2_hashmap_size > 30:
             raise ValueError(f"log2_hashmap_size must be at most 30, got {self.log2_hashmap_size}")
+        if self.finest_resolution is not None and self.finest_resolution < self.base_resolution:
+            raise ValueError(f"field.base_resolution {self.base_resolution} is above the finest level's "
+                             f"{self.finest_resolution:g}: the levels would grow coarser")
 
 
 class _TruncExp(torch.autograd.Function):

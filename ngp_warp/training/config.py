@@ -246,5 +246,5 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     if field_config.finest_resolution is None:
         finest = pixel_matched_resolution(scene, config.supersample, kind)
         field_config = dataclasses.replace(field_config, finest_resolution=finest)
-    config = dataclasses.replace(config, field=field_config)
-    return config
+    field_config.check()  # the finest resolution picked for the scene against the base one
+    return dataclasses.replace(config, field=field_config)
