@@ -37,12 +37,18 @@ def writable_dir(path: Path) -> Path:
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
-        probe = path / f".ngp-warp-write-test-{os.getpid()}"  # data-parallel ranks probe at once
-        probe.write_text("")
-        probe.unlink()
+        _probe_write(path)
     except OSError as e:
         raise UserError(f"{path}: output folder is not writable ({e.strerror or e})") from None
     return path
+
+
+def _probe_write(folder: Path) -> None:
+    """Write and remove a file in ``folder`` (OSError when it takes none); the name is per
+    process, as data-parallel ranks probe at once."""
+    probe = folder / f".ngp-warp-write-test-{os.getpid()}"
+    probe.write_text("")
+    probe.unlink()
 
 
 def output_file(out_dir: Path, name: str, flag: str, suffixes: tuple[str, ...]) -> Path:
@@ -60,9 +66,7 @@ def output_file(out_dir: Path, name: str, flag: str, suffixes: tuple[str, ...]) 
     if not path.parent.is_dir():
         raise UserError(f"{flag} {name}: folder {path.parent} does not exist")
     try:
-        probe = path.parent / f".ngp-warp-write-test-{os.getpid()}"
-        probe.write_text("")
-        probe.unlink()
+        _probe_write(path.parent)
     except OSError as e:
         raise UserError(f"{flag} {name}: cannot write in {path.parent} ({e.strerror or e})") from None
     return path

@@ -28,8 +28,7 @@ from collections.abc import Callable
 
 import torch
 
-from ngp_warp._reference import composite as reference
-from ngp_warp.ops.composite import composite_packed, ray_offsets_from_indices
+from ngp_warp.ops.composite import composite, composite_packed, ray_offsets_from_indices
 from ngp_warp.ops.occupancy import OccupancyGrid
 from ngp_warp.ops.prune import prune_samples
 from ngp_warp.ops.raymarch import MarchOptions, RaySamples, ray_marching
@@ -187,10 +186,10 @@ def _shade(samples: RaySamples, field_fn: FieldFn, early_stop_eps: float, ray_im
         zero = sigmas.sum() + rgbs.sum()
         rgb, per_ray = torch.zeros(n_rays, 3, device=dev, dtype=zero.dtype), torch.zeros(n_rays, device=dev, dtype=zero.dtype)
         return rgb + zero, per_ray + zero, per_ray + zero, sigmas * 0
-    if sigmas.dtype == torch.float64:  # the float64 twin
+    if sigmas.dtype == torch.float64:  # the public op's float64 path (the twin)
         f64 = torch.float64
-        return reference.composite(sigmas, rgbs.to(f64), samples.t_starts.to(f64), samples.t_ends.to(f64),
-                                   samples.ray_indices, n_rays, early_stop_eps)
+        return composite(sigmas, rgbs.to(f64), samples.t_starts.to(f64), samples.t_ends.to(f64),
+                         samples.ray_indices, n_rays, early_stop_eps, return_weights=True, validate=False)
     return composite_packed(sigmas.float().contiguous(), rgbs.float().contiguous(),
                             samples.t_starts, samples.t_ends, samples.ray_offsets, early_stop_eps)
 
