@@ -15,15 +15,16 @@ leaves nothing behind, and an existing SCENE is replaced only when asked (``over
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
-import sqlite3
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from ngp_warp.data.data_error import DataError
+from ngp_warp.data.database_rows import DatabaseRows
 from ngp_warp.data.pose_errors import pose_errors  # noqa: F401  (process's callers check poses with it)
 
 EXTRA = 'pip install "ngp-warp[process]"'
@@ -146,18 +147,10 @@ def _gather_images(source: Path, images_dir: Path, config: ProcessConfig) -> tup
     return _image_sizes(images_dir), True
 
 
-def _count_rows(database: Path, table: str) -> int | None:
-    """Rows in ``table`` of the COLMAP database being written (None while it is busy)."""
-    try:
-        with sqlite3.connect(f"file:{database}?mode=ro", uri=True, timeout=0.05) as db:
-            return int(db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
-    except sqlite3.Error:
-        return None
-
-
 def _run_stage(label: str, total: int, work, progress, show: bool):
     """Run ``work(cancel_token)`` (a pycolmap call, which releases the GIL) in a thread while a
-    progress bar shows ``progress()`` of ``total``; Ctrl-C cancels the call before it propagates."""
+    progress bar, when ``show``, moves to ``progress`` of ``total``: a callable giving the count
+    done, or (database, table) whose rows count; Ctrl-C cancels the call before it propagates."""
     import pycolmap
     from ngp_warp.progress import progress as progress_bar
 
@@ -170,7 +163,9 @@ def _run_stage(label: str, total: int, work, progress, show: bool):
             outcome["error"] = e
 
     thread = threading.Thread(target=target, name=f"pycolmap {label}", daemon=True)
-    with progress_bar(total=total, desc=label, unit="", disable=not show) as bar:
+    with progress_bar(total=total, desc=label, unit="", disable=not show) as bar, contextlib.ExitStack() as stack:
+        if isinstance(progress, tuple):
+            progress = stack.enter_context(DatabaseRows(*progress)).rows if show else (lambda: None)
         thread.start()
         try:
             while thread.is_alive():
@@ -216,7 +211,7 @@ def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: st
     _run_stage("features", len(sizes), lambda token: pycolmap.extract_features(
         database, images_dir, image_names=list(sizes), camera_mode=mode, reader_options=reader,
         extraction_options=extraction, device=sift_device, cancellation_token=token),
-        lambda: _count_rows(database, "keypoints"), show)
+        (database, "keypoints"), show)
     n = len(sizes)
     if matcher == "exhaustive":
         pairs, run = n * (n - 1) // 2, pycolmap.match_exhaustive
@@ -226,7 +221,7 @@ def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: st
         options = pycolmap.SequentialPairingOptions(overlap=SEQUENTIAL_OVERLAP, quadratic_overlap=True)
     _run_stage(f"matching ({matcher})", pairs, lambda token: run(
         database, pairing_options=options, device=device, cancellation_token=token),
-        lambda: _count_rows(database, "two_view_geometries"), show)
+        (database, "two_view_geometries"), show)
     return database, "cuda" if sift_device == pycolmap.Device.cuda else "cpu"
 
 
