@@ -9,6 +9,7 @@ Public API (``import ngp_warp`` works without a GPU; kernels compile on first us
 * :class:`NGPField` -- hash grid + tiny MLPs
 """
 
+from ngp_warp import wall_clock  # noqa: F401  (first: start-up is timed from here)
 from ngp_warp import _wp
 
 __version__ = "0.1.0"

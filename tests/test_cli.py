@@ -31,10 +31,15 @@ def test_train_eval_render(scene, tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["train", str(scene), "--out", str(out), "--steps", "20", "--frames", "3",
                  "--set", "distortion_weight=0.01", *FAST]) == 0
-    assert "distortion loss weight 0.01 (normalised), 1x1 rays per pixel" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "distortion loss weight 0.01 (normalised), 1x1 rays per pixel" in err
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr", "ssim", "train_seconds", "steps", "per_image"):
         assert key in metrics
+    wall = metrics["wall_seconds"]
+    assert list(wall) == ["start_up", "training", "checkpoint", "evaluation", "video"]
+    assert all(s > 0 for s in wall.values()) and wall["training"] >= metrics["train_seconds"]
+    assert f"wall clock {sum(wall.values()):.1f} s: start-up {wall['start_up']:.1f} s, training" in err
     assert metrics["steps"] == 20 and len(metrics["per_image"]) == 2
     assert sorted(p.name for p in (out / "renders").iterdir()) == ["r_0.png", "r_1.png"]
     assert len(list((out / "depth").iterdir())) == 2

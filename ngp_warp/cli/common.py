@@ -126,7 +126,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     from ngp_warp.training.checkpoint import load_trainer, save_checkpoint
     from ngp_warp.outputs.camera_path import around_cameras
     from ngp_warp.outputs.video_out import render_trainer_video
-    from ngp_warp.outputs.evaluate import evaluate
+    from ngp_warp.outputs.evaluate import evaluate, write_metrics
+    from ngp_warp.wall_clock import WallClock
     from ngp_warp.training.refined_transforms import write_refined_transforms
 
     out = folder.path
@@ -162,12 +163,17 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     def save() -> None:  # an overwritten run's outputs go just before the first (good) write
         save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim)
 
+    clock = WallClock()
+    clock.mark("start_up")
     _train(trainer, save, folder, args, scene_path)
+    clock.mark("training")
     save()
     if trainer.cameras is not None:
         refined = write_refined_transforms(trainer, scene_path, downscale, out)
         print(f"camera refinement: {trainer.cameras.summary()}; refined poses: {refined}", file=sys.stderr)
+    clock.mark("checkpoint")
     metrics = evaluate(trainer, out, show_progress=not args.quiet)
+    clock.mark("evaluation")
     if not args.no_video:
         train = scene.train
         centre = ((scene.aabb[:3] + scene.aabb[3:]) / 2).cpu()
@@ -175,7 +181,9 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
                                args.frames, ORBIT_FPS)
         video = render_trainer_video(trainer, orbit, out / "orbit.mp4", depth=False, quiet=args.quiet)[0]
         print(f"orbit video: {video}", file=sys.stderr)
-    return metrics
+        clock.mark("video")
+    print(clock.summary(), file=sys.stderr)
+    return write_metrics(out, {**metrics, "wall_seconds": clock.seconds})
 
 
 def _train(trainer, save, folder, args, scene_path: Path) -> None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import itertools
 import json
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -43,6 +45,32 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
         lo, hi = d[mask].min(), d[mask].max()
         d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
+
+
+class BackgroundWrites:
+    """Image files encoded and written on two threads while the GPU renders the next view: a
+    context manager whose exit waits for every write and raises the first failure; at most
+    ``max_pending`` writes queue (each holds its pixels)."""
+
+    def __init__(self, max_pending: int = 8):
+        self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="image write")
+        self._pending: deque[Future] = deque()
+        self._max_pending = max_pending
+
+    def submit(self, write, *args) -> None:
+        while len(self._pending) >= self._max_pending:
+            self._pending.popleft().result()
+        self._pending.append(self._pool.submit(write, *args))
+
+    def __enter__(self) -> BackgroundWrites:
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        try:
+            while self._pending and exc_type is None:
+                self._pending.popleft().result()
+        finally:
+            self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1, fit_appearance: bool = False,
@@ -105,7 +133,8 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
         itertools.repeat(None)
     per_image = []
     bar = progress(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
-    with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths:
+    with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths, \
+            BackgroundWrites() as writes:
         for (name, out, gt), whole in zip(views, whole_views):
             stem = Path(name).stem
             if fitted:
@@ -115,8 +144,8 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
             else:
                 scores, lpips_note = _scores(out["rgb"], gt)
             per_image.append({"image": name, **scores})
-            iio.imwrite(renders / f"{stem}.png", to_uint8(out["rgb"]))
-            iio.imwrite(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
+            writes.submit(iio.imwrite, renders / f"{stem}.png", to_uint8(out["rgb"]))
+            writes.submit(iio.imwrite, depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
             bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
             bar.update()
         bar.close()
@@ -139,8 +168,13 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
         **appearance,
         "per_image": per_image,
     }
+    return write_metrics(out_dir, metrics)
+
+
+def write_metrics(out_dir: Path, metrics: dict) -> dict:
+    """Write ``metrics`` (non-finite numbers as null) to ``out_dir/metrics.json``; return what was written."""
     metrics = finite_or_null(metrics)
-    atomic_write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False))
+    atomic_write_text(Path(out_dir) / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False))
     return metrics
 
 
