@@ -2,7 +2,8 @@
 the command a user runs (``ngp-warp train SCENE --seconds S``, defaults), one table.
 
     python benchmarks/bench_captures.py --lego ../shared/data/lego_half --fox ../shared/data/fox \
-        --seconds 60 [--scenes demo-colmap,unbounded-colmap] [--runs 3] [--compare contraction=none]
+        --seconds 60 [--scenes demo-colmap,unbounded-colmap] [--runs 3] [--compare contraction=none] \
+        [--downscale 4] [--device cpu]
 
 Scenes (every 8th frame held out, sorted by name; ``capture_scenes.py`` writes the forms):
 
@@ -11,6 +12,8 @@ Scenes (every 8th frame held out, sorted by name; ``capture_scenes.py`` writes t
   infinity, and as an instant-ngp transforms.json over white;
 * ``lego-colmap`` / ``lego-colmap-sky`` / ``lego-ngp``: lego_half's train and test views, every
   2nd (150 at 400×400), in the same three forms (``--lego``);
+* ``demo-nerf-synthetic`` / ``lego-nerf-synthetic``: the same views as a NeRF-synthetic folder
+  whose test split is the frames the captures hold out (the reference a capture form is held to);
 * ``unbounded-colmap``: the built-in unbounded scene (60 train + 10 test views) as a COLMAP model;
 * ``room-colmap``: the demo scene in its textured room (60 views at 100×100) as a COLMAP model;
 * ``fox``: instant-ngp's fox as it ships (``--fox``).
@@ -41,8 +44,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from capture_scenes import write_capture  # noqa: E402
 
-SCENES = ("demo-colmap", "demo-colmap-sky", "demo-ngp", "lego-colmap", "lego-colmap-sky", "lego-ngp",
-          "unbounded-colmap", "room-colmap", "fox")
+SCENES = ("demo-colmap", "demo-colmap-sky", "demo-ngp", "demo-nerf-synthetic", "lego-colmap", "lego-colmap-sky",
+          "lego-ngp", "lego-nerf-synthetic", "unbounded-colmap", "room-colmap", "fox")
 
 
 def write_room(folder: Path) -> Path:
@@ -98,7 +101,7 @@ def scene_folder(name: str, work: Path, args) -> Path:
 def train(scene: Path, out: Path, args, seed: int, settings: list[str]) -> dict:
     """One ``ngp-warp train`` run; its metrics.json with the run's contraction added."""
     command = ["ngp-warp", "train", str(scene), "--out", str(out), "--seconds", str(args.seconds), "--seed", str(seed),
-               "--no-video", "--quiet", "--overwrite", "--device", args.device]
+               "--no-video", "--quiet", "--overwrite", "--device", args.device, "--downscale", str(args.downscale)]
     for setting in settings:
         command += ["--set", setting]
     done = subprocess.run(command, capture_output=True, text=True)
@@ -120,10 +123,13 @@ def picture(run: Path, metrics: dict, height: int = 128) -> np.ndarray | None:
     images = [iio.imread(name)[..., :3], iio.imread(run / "renders" / f"{name.stem}.png")[..., :3],
               iio.imread(run / "depth" / f"{name.stem}.png")]
     images[2] = np.repeat(images[2][..., None], 3, -1) if images[2].ndim == 2 else images[2][..., :3]
-    rows = (np.arange(height) * images[0].shape[0] / height).astype(int)
-    cols = (np.arange(round(height * images[0].shape[1] / images[0].shape[0])) * images[0].shape[1]
-            / round(height * images[0].shape[1] / images[0].shape[0])).astype(int)
-    return np.concatenate([im[rows][:, cols] for im in images], 1)
+    width = round(height * images[0].shape[1] / images[0].shape[0])
+
+    def resized(im: np.ndarray) -> np.ndarray:  # the ground truth is full size, a --downscale run's renders not
+        rows = (np.arange(height) * im.shape[0] / height).astype(int)
+        return im[rows][:, (np.arange(width) * im.shape[1] / width).astype(int)]
+
+    return np.concatenate([resized(im) for im in images], 1)
 
 
 def summary(runs: list[dict]) -> dict:
@@ -170,6 +176,7 @@ def main() -> None:
     parser.add_argument("--lego", type=Path, help="lego_half (NeRF-synthetic folder)")
     parser.add_argument("--fox", type=Path, help="instant-ngp's fox folder")
     parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--downscale", type=int, default=1, help="train and score every scene at 1/N resolution")
     parser.add_argument("--runs", type=int, default=1, help="runs per scene and setting (seeds 0, 1, ...)")
     parser.add_argument("--compare", action="append", default=[], help="KEY=VALUE[,KEY=VALUE]: also train each scene with these")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")

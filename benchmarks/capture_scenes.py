@@ -27,7 +27,8 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-FORMS = ("colmap", "colmap-sky", "ngp")
+FORMS = ("colmap", "colmap-sky", "ngp", "nerf-synthetic")
+HELD_OUT_EVERY = 8  # the loaders hold out every 8th frame (by name) of a capture without a test split
 
 
 def synthetic_views(src: Path, every: int = 1) -> list[tuple[Path, np.ndarray, float]]:
@@ -88,6 +89,8 @@ def write_capture(src: Path, dst: Path, form: str, every: int = 1) -> Path:
     if form not in FORMS:
         raise ValueError(f"form must be one of {', '.join(FORMS)}, got {form!r}")
     views = synthetic_views(src, every)
+    if form == "nerf-synthetic":
+        return _write_nerf_synthetic(views, dst)
     (dst / "images").mkdir(parents=True)
     height, width = iio.imread(views[0][0]).shape[:2]
     focal = 0.5 * width / math.tan(0.5 * views[0][2])
@@ -113,6 +116,22 @@ def write_capture(src: Path, dst: Path, form: str, every: int = 1) -> Path:
     (sparse / "cameras.txt").write_text(f"1 PINHOLE {width} {height} {focal!r} {focal!r} {width / 2!r} {height / 2!r}\n")
     (sparse / "images.txt").write_text("".join(lines))
     (sparse / "points3D.txt").write_text("")
+    return dst
+
+
+def _write_nerf_synthetic(views: list, dst: Path) -> Path:
+    """The views as a NeRF-synthetic folder (RGBA images, scored over white) whose test split is
+    the frames a capture form holds out: the same training views and held-out views."""
+    for split in ("train", "test"):
+        (dst / split).mkdir(parents=True)
+    frames = {"train": [], "test": []}
+    for k, (image_path, c2w, _) in enumerate(views):
+        split = "test" if k % HELD_OUT_EVERY == 0 else "train"
+        (dst / split / f"{k:04d}.png").write_bytes(image_path.read_bytes())
+        frames[split].append({"file_path": f"./{split}/{k:04d}", "transform_matrix": c2w.tolist()})
+    for split, listed in frames.items():
+        meta = {"camera_angle_x": views[0][2], "frames": listed}
+        (dst / f"transforms_{split}.json").write_text(json.dumps(meta, indent=1))
     return dst
 
 

@@ -6,13 +6,22 @@ from __future__ import annotations
 import time
 
 IMPORTED_AT = time.perf_counter()  # ngp_warp/__init__.py imports this module before anything else
+_commands_started = 0
+
+
+def command_started() -> float:
+    """When the command now starting began (``time.perf_counter``): the import of ngp_warp for a
+    process's first command, now for a later one in the same process (tests, scripts)."""
+    global _commands_started
+    _commands_started += 1
+    return IMPORTED_AT if _commands_started == 1 else time.perf_counter()
 
 
 class WallClock:
     """Seconds per phase, in the order first marked: ``mark(phase)`` gives ``phase`` the time
     since the previous mark (the first mark since the import of ``ngp_warp``)."""
 
-    def __init__(self, started: float = IMPORTED_AT):
+    def __init__(self, started: float):
         self.seconds: dict[str, float] = {}
         self._last = started
 

@@ -89,6 +89,27 @@ def _image(index, content):
     return edit
 
 
+def _text(make):
+    def edit(meta, folder):
+        (folder / "transforms_train.json").write_text(make(meta))
+        return False
+    return edit
+
+
+def _every_frame_at_the_first_pose(meta, folder):
+    for frame in meta["frames"]:
+        frame["transform_matrix"] = meta["frames"][0]["transform_matrix"]
+
+
+def _image_replaced(index, by):
+    def edit(meta, folder):
+        image = folder / (meta["frames"][index]["file_path"] + ".png")
+        image.unlink()
+        image.mkdir() if by == "folder" else image.symlink_to(image)
+        return False
+    return edit
+
+
 def _all_images_gone(meta, folder):
     shutil.rmtree(folder / "train")
 
@@ -142,6 +163,14 @@ SCENE_CASES = {
     "scale_negative": _top("scale", -1.0),
     "contraction_bad": _top("contraction", "sphere"),
     "world_from_scene_bad": _top("world_from_scene", [[1, 0, 0, 0]] * 4),
+    "json_nested_deeply": _text(lambda meta: '{"frames": ' + "[" * 100000 + "]" * 100000 + "}"),
+    "json_integer_beyond_float": _text(lambda meta: json.dumps(meta).replace('"camera_angle_x": ',
+                                                                              '"camera_angle_x": 1' + "0" * 400 + ', "x": ')),
+    "matrix_bottom_row": _frame("transform_matrix", [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0.5, 0, 0, 2]]),
+    "every_frame_one_pose": _every_frame_at_the_first_pose,
+    "camera_at_1e30": _frame("transform_matrix", [[1, 0, 0, 1e30], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]),
+    "image_is_a_folder": _image_replaced(0, "folder"),
+    "image_is_a_link_loop": _image_replaced(0, "loop"),
     "image_not_png": _image(0, b"this is not an image"),
     "image_empty": _image(1, b""),
 }
@@ -172,13 +201,23 @@ def settings_cases(scene: Path, golden: Path, tmp: Path) -> dict:
     new = train + [str(tmp / "new")]
     cases = {f"set_{s}": new + ["--set", s] for s in (
         "lr=inf", "lr=nan", "lr=-1", "lr=abc", "seconds=inf", "bogus=1", "field.bogus=1", "noequals",
-        "grid_resolution=100000", "grid_resolution=0", "field.log2_hashmap_size=40", "loss=l1",
+        "grid_resolution=100000", "grid_resolution=0", "grid_resolution=1", "grid_resolution=2",
+        "field.log2_hashmap_size=40", "field.hidden=100000", "field.geo_features=100000",
+        "field.finest_resolution=1e30", "loss=l1",
         "weight_average=1", "supersample=9", "steps_per_diagonal=-3", "cone_angle=nan", "seed=-5")}
     cases.update({
         "seed_huge": new + ["--seed", "99999999999999999999999"],
         "steps_zero": new + ["--steps", "0"],
         "seconds_inf": new + ["--seconds", "inf"],
         "frames_negative": new + ["--frames", "-2"],
+        "frames_a_billion": new + ["--frames", str(10**9)],
+        "steps_beyond_int64": new + ["--steps", str(2**64)],
+        "out_name_too_long": train + [str(tmp / ("x" * 300))],
+        "out_holds_the_scene": train + [str(scene.parent)],
+        "render_fps_near_zero": ["render", str(golden), "--video", "v.gif", "--fps", "1e-300"],
+        "render_frames_a_billion": ["render", str(golden), "--video", "v.gif", "--frames", str(10**9)],
+        "fit_many_out_is_the_scenes": ["fit-many", str(scene.parent / "scen*"), "--out", str(scene.parent),
+                                       "--steps", "1"],
         "out_empty": train + [""],
         "device_tpu": new + ["--device", "tpu"],
         "into_golden": train + [str(golden)],
@@ -216,3 +255,31 @@ def test_bad_settings_and_uses_are_one_line(case, scene, golden, tmp_path, capsy
     assert_one_error_line(code, capsys)
     assert folder_digest(golden) == before
     assert not (tmp_path / "new").exists() and not (tmp_path / "demo").exists()
+
+
+CHECKPOINT_EDITS = {
+    "train_config_a_list": lambda state: state.__setitem__("train_config", [1]),
+    "scene_record_a_string": lambda state: state.__setitem__("scene", "lego"),
+    "scene_path_a_number": lambda state: state["scene"].__setitem__("path", 5),
+    "downscale_a_string": lambda state: state["scene"].__setitem__("downscale", "x"),
+    "downscale_zero": lambda state: state["scene"].__setitem__("downscale", 0),
+    "field_settings_a_string": lambda state: state["train_config"].__setitem__("field", "x"),
+    "step_a_string": lambda state: state.__setitem__("step", "x"),
+    "step_negative": lambda state: state.__setitem__("step", -3),
+    "train_seconds_nan": lambda state: state.__setitem__("train_seconds", float("nan")),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CHECKPOINT_EDITS))
+def test_hand_edited_checkpoints_are_one_line(case, golden, tmp_path, capsys):
+    import torch
+
+    run = tmp_path / "run"
+    shutil.copytree(golden, run)
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    CHECKPOINT_EDITS[case](state)
+    torch.save(state, run / "checkpoint.pt")
+    before = folder_digest(run)
+    capsys.readouterr()
+    assert_one_error_line(main(["eval", str(run), "--device", "cpu", "--quiet"]), capsys)
+    assert folder_digest(run) == before

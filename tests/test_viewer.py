@@ -3,6 +3,7 @@ Chromium driven over the DevTools protocol) that shows the scene and follows the
 
 import math
 import shutil
+import socket
 import threading
 import time
 from argparse import Namespace
@@ -110,6 +111,24 @@ def test_view_of_a_missing_folder_is_one_line(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope"), "--device", "cpu"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("ngp-warp: error: ") and "no such run or scene folder" in err[-1]
+
+
+def test_a_busy_port_or_a_foreign_host_is_one_line_before_loading(tmp_path, capsys):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        missing = str(tmp_path / "nope")  # the address is checked before the run would be loaded
+        assert main(["view", missing, "--device", "cpu", "--port", str(port)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1] == f"ngp-warp: error: --port {port}: already in use on 127.0.0.1 (choose another --port, " \
+                          f"and forward that one)", err
+    assert main(["view", missing, "--device", "cpu", "--host", "10.255.255.1"]) == 2  # not this machine's
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("ngp-warp: error: --host 10.255.255.1 --port 8080: cannot listen there"), err
+    with pytest.raises(SystemExit):
+        main(["view", missing, "--port", "70000"])
+    assert "expected a positive int up to 65535" in capsys.readouterr().err
 
 
 # ---- a real browser ------------------------------------------------------------------------------

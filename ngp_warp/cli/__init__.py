@@ -16,6 +16,8 @@ from ngp_warp.cli.process import add_process_parser
 from ngp_warp.cli.render import add_path_arguments, cmd_render
 from ngp_warp.cli.train import cmd_demo, cmd_train
 from ngp_warp.cli.view import add_view_parser
+from ngp_warp.outputs.camera_path import MAX_FRAMES
+from ngp_warp.wall_clock import command_started
 
 __all__ = ["CHECKPOINT", "UserError", "main"]
 
@@ -39,7 +41,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
                              "(repeatable; see ngp_warp.training.config.TrainConfig)")
         sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
-        sp.add_argument("--frames", type=positive(int), default=60, help="orbit video frames")
+        sp.add_argument("--frames", type=positive(int, high=MAX_FRAMES), default=60, help="orbit video frames")
         sp.add_argument("--overwrite", action="store_true", help="replace the run already in the output folder")
         sp.add_argument("--checkpoint-every", type=positive(float), default=300.0, metavar="SECONDS",
                         help="save a checkpoint this often while training (default 300; also on Ctrl-C and SIGTERM)")
@@ -71,7 +73,7 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="render a video along a camera path from a trained output folder")
     r.add_argument("dir", type=folder_name)
     r.add_argument("--video", default="orbit.mp4", help="video path (.mp4, or .gif; relative to DIR)")
-    add_path_arguments(r, positive(int), positive(float))
+    add_path_arguments(r)
     r.add_argument("--scene", help="scene folder, if it moved since training")
     common(r)
     r.set_defaults(func=cmd_render)
@@ -90,7 +92,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    started = command_started()
     args = _parser().parse_args(argv)
+    args.started = started
     if getattr(args, "gpus", 1) > 1:  # run this command line as that many torchrun ranks
         from ngp_warp.training.distributed import launch_ranks
 

@@ -7,12 +7,14 @@ import argparse
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 CHECKPOINT = "checkpoint.pt"
 
 
 ORBIT_FPS = 20.0  # the training run's orbit video
+NAME_MAX = 255  # bytes in one file or folder name (Linux, macOS and Windows file systems)
 
 
 class UserError(Exception):
@@ -51,6 +53,16 @@ def _probe_write(folder: Path) -> None:
     probe.unlink()
 
 
+def check_run_apart(run: Path, scene: Path, flag: str = "--out") -> None:
+    """UserError when the run folder ``run`` is the scene's folder (``scene``: a folder or a
+    transforms file), inside it, or holds it: the run would be written into the dataset."""
+    dataset = (scene if scene.is_dir() else scene.parent).resolve()
+    run = run.resolve()
+    if run == dataset or dataset in run.parents or run in dataset.parents:
+        raise UserError(f"{flag} {run}: the run folder would be, hold or sit inside the scene folder {dataset}, "
+                        f"so the run would be written into the dataset (choose a folder apart from it)")
+
+
 def output_file(out_dir: Path, name: str, flag: str, suffixes: tuple[str, ...]) -> Path:
     """The file ``name`` (relative to ``out_dir`` unless absolute) that ``flag`` asks a
     subcommand to write, vetted before any work: one of ``suffixes``, not a folder, in a folder
@@ -59,8 +71,8 @@ def output_file(out_dir: Path, name: str, flag: str, suffixes: tuple[str, ...]) 
     path = path if path.is_absolute() else Path(out_dir) / path
     if path.suffix.lower() not in suffixes:
         raise UserError(f"{flag} {name}: expected a {' or '.join(suffixes)} path")
-    if len(path.name.encode()) > 255:
-        raise UserError(f"{flag}: the file name is longer than the file system takes (255 bytes)")
+    if len(path.name.encode()) > NAME_MAX:
+        raise UserError(f"{flag}: the file name is longer than the file system takes ({NAME_MAX} bytes)")
     if path.is_dir():
         raise UserError(f"{flag} {name}: is a folder, not a file")
     if not path.parent.is_dir():
@@ -125,7 +137,7 @@ def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
 def _run(scene, scene_path: Path, folder, args, device: str, config, resume: bool) -> dict:
     from ngp_warp.training.checkpoint import load_trainer, save_checkpoint
     from ngp_warp.outputs.camera_path import around_cameras
-    from ngp_warp.outputs.video_out import render_trainer_video
+    from ngp_warp.outputs.video_out import check_video_memory, render_trainer_video
     from ngp_warp.outputs.evaluate import evaluate, write_metrics
     from ngp_warp.wall_clock import WallClock
     from ngp_warp.training.refined_transforms import write_refined_transforms
@@ -163,7 +175,9 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     def save() -> None:  # an overwritten run's outputs go just before the first (good) write
         save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim)
 
-    clock = WallClock()
+    if not args.no_video:  # the orbit video's frames, checked before the work
+        check_video_memory(args.frames, scene.train.width, scene.train.height, depth=False)
+    clock = WallClock(getattr(args, "started", time.perf_counter()))
     clock.mark("start_up")
     _train(trainer, save, folder, args, scene_path)
     clock.mark("training")
@@ -222,14 +236,18 @@ def print_metrics(metrics: dict, out: Path) -> None:
     print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
 
 
-def positive(kind):
+def positive(kind, low=None, high=None):
+    """An argparse type: a positive finite ``kind``, within [``low``, ``high``] where given."""
+    bounds = "" if high is None else f" up to {high:g}" if low is None else f" in [{low:g}, {high:g}]"
+
     def parse(text: str):
         try:
             value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}") from None
-        if not (value > 0 and math.isfinite(value)):
-            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
+        except (ValueError, OverflowError):
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}{bounds}, got {text!r}") from None
+        if not (value > 0 and math.isfinite(value)) or (low is not None and value < low) or \
+                (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}{bounds}, got {text!r}")
         return value
 
     parse.__name__ = kind.__name__
@@ -247,6 +265,9 @@ def seed_number(text: str) -> int:
 
 
 def folder_name(text: str) -> str:
+    """An argparse type: a folder's path, not empty, each of its names one the file system takes."""
     if not text.strip():
         raise argparse.ArgumentTypeError("expected a folder, got an empty name")
+    if any(len(part.encode()) > NAME_MAX for part in Path(text).parts):
+        raise argparse.ArgumentTypeError(f"a name in this path is longer than the file system takes ({NAME_MAX} bytes)")
     return text

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from ngp_warp.cli.common import CHECKPOINT, UserError, train_and_report, train_config, writable_dir
+from ngp_warp.cli.common import CHECKPOINT, UserError, check_run_apart, train_and_report, train_config, writable_dir
 from ngp_warp.data.data_error import DataError
 
 SUMMARY = "summary.json"
@@ -149,6 +149,8 @@ def cmd_fit_many(args) -> None:
 
     scenes = read_manifest(args.manifest)  # bad input: one line before anything is written
     try:
+        for scene in scenes:
+            check_run_apart(Path(args.out) / scene.name, scene)
         train_config(args)
         out = writable_dir(Path(args.out))
     except UserError as e:

@@ -5,17 +5,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ngp_warp.cli.common import CHECKPOINT, UserError, output_file, resolve_device
+from ngp_warp.cli.common import CHECKPOINT, UserError, output_file, positive, resolve_device
+from ngp_warp.outputs.camera_path import FPS_RANGE, MAX_FRAMES
 
-def add_path_arguments(parser: argparse.ArgumentParser, positive_int, positive_float) -> None:
-    """``--path``, ``--frames``, ``--fps`` and ``--depth-video`` for ``ngp-warp render``
-    (``positive_int``/``positive_float``: the CLI's argparse types)."""
+
+def add_path_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--path``, ``--frames``, ``--fps`` and ``--depth-video`` for ``ngp-warp render``."""
     parser.add_argument("--path", default="orbit", metavar="FILE|orbit|spiral",
                         help="camera path: a nerfstudio camera_path.json, an instant-ngp base_cam.json, "
                              "or orbit / spiral around the training cameras (default orbit)")
-    parser.add_argument("--frames", type=positive_int, default=60,
+    parser.add_argument("--frames", type=positive(int, high=MAX_FRAMES), default=60,
                         help="frames of an orbit, a spiral or an instant-ngp path (nerfstudio paths bring their own)")
-    parser.add_argument("--fps", type=positive_float, default=20.0, help="frames per second (nerfstudio paths bring their own)")
+    parser.add_argument("--fps", type=positive(float, *FPS_RANGE), default=20.0,
+                        help="frames per second (nerfstudio paths bring their own)")
     parser.add_argument("--depth-video", action="store_true", help="also write NAME_depth.mp4 (or .gif)")
 
 

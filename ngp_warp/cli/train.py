@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ngp_warp.cli.common import UserError, print_metrics, resolve_device, train_and_report, train_config, with_settings, writable_dir
+from ngp_warp.cli.common import UserError, check_run_apart, print_metrics, resolve_device, train_and_report, train_config, with_settings, writable_dir
 
 def cmd_train(args) -> None:
     scene = Path(args.scene)
@@ -13,11 +13,7 @@ def cmd_train(args) -> None:
         raise UserError("--set with --resume: a resumed run keeps the settings in its checkpoint")
     if args.resume and args.overwrite:
         raise UserError("--resume with --overwrite: continue the run in --out, or replace it, not both")
-    dataset = (scene if scene.is_dir() else scene.parent).resolve()
-    out = Path(args.out).resolve()
-    if out == dataset or dataset in out.parents:
-        raise UserError(f"--out {args.out}: inside the scene folder {scene}, so the run would be written into the "
-                        f"dataset (choose a folder outside it)")
+    check_run_apart(Path(args.out), scene)
     config = None if args.resume else train_config(args)  # bad settings fail before any loading
     from ngp_warp.training.distributed import join_data_parallel
 

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import errno
+import socket
 import sys
 from pathlib import Path
 
-from ngp_warp.cli.common import CHECKPOINT, UserError, new_trainer, resolve_device, train_config
+from ngp_warp.cli.common import CHECKPOINT, UserError, new_trainer, positive, resolve_device, train_config
+
 
 def add_view_parser(subparsers, positive_int):
     """The ``view`` sub-command (``positive_int``: the CLI's argparse type); returns its parser,
@@ -14,7 +17,7 @@ def add_view_parser(subparsers, positive_int):
     v.add_argument("target", metavar="RUN_OR_SCENE", help="a trained output folder, or a scene folder to train live")
     v.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; forward it over SSH: ssh -L 8080:localhost:8080)")
-    v.add_argument("--port", type=positive_int, default=8080, help="port (default 8080)")
+    v.add_argument("--port", type=positive(int, high=65535), default=8080, help="port (default 8080)")
     v.add_argument("--resolution", type=positive_int,
                    help="longest side of a resting frame in pixels (default 800 on CUDA, 200 on the CPU)")
     v.add_argument("--moving-resolution", type=positive_int,
@@ -43,6 +46,24 @@ def load_target(args, device: str):
     return new_trainer(load_scene(target, downscale=args.downscale), train_config(args, device), device), True
 
 
+def check_listen_address(host: str, port: int) -> None:
+    """UserError (one line) unless a server can listen on ``host``:``port`` now: a host this
+    machine has, a port nobody else holds (another port would break SSH forwarding)."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (socket.gaierror, UnicodeError) as e:
+        raise UserError(f"--host {host}: not an address to listen on ({getattr(e, 'strerror', None) or e})") from None
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as servers do: a closed port is free
+        try:
+            probe.bind(address)
+        except OSError as e:
+            if e.errno == errno.EADDRINUSE:
+                raise UserError(f"--port {port}: already in use on {host} (choose another --port, and forward "
+                                f"that one)") from None
+            raise UserError(f"--host {host} --port {port}: cannot listen there ({e.strerror or e})") from None
+
+
 def cmd_view(args) -> None:
 
     try:
@@ -51,6 +72,7 @@ def cmd_view(args) -> None:
         raise UserError("view needs viser: pip install 'ngp-warp[viewer]'") from None
     from ngp_warp.viewer.server import Viewer
 
+    check_listen_address(args.host, args.port)  # before the run is loaded
     device = resolve_device(args.device)
     trainer, live = load_target(args, device)
     resolution = args.resolution or (800 if trainer.device.type == "cuda" else 200)
@@ -59,6 +81,10 @@ def cmd_view(args) -> None:
         viewer = Viewer(trainer, args.host, args.port, resolution, moving, live)
     except OSError as e:
         raise UserError(f"--port {args.port}: cannot listen on {args.host} ({e.strerror or e})") from None
+    if viewer.server.get_port() != args.port:  # taken since the check: the server moved to another
+        viewer.close()
+        raise UserError(f"--port {args.port}: already in use on {args.host} (choose another --port, and forward "
+                        f"that one)")
     what = "training live" if live else f"step {trainer.step_count}"
     print(f"ngp-warp view: {args.target} ({what}) at {viewer.url}  (Ctrl-C to stop)", file=sys.stderr)
     print(viewer.url, flush=True)

@@ -30,7 +30,7 @@ from ngp_warp.atomic import atomic_write_text
 from ngp_warp.data.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, generate_rays
 from ngp_warp.data.colmap import colmap_to_transforms, read_colmap_model
 from ngp_warp.data.data_error import DataError, short
-from ngp_warp.data.transforms_json import (NGP_SCENE_KEYS, Frame, contraction_key, declared_size, frame_camera, log,
+from ngp_warp.data.transforms_json import (NGP_SCENE_KEYS, Frame, check_pose_set, contraction_key, declared_size, frame_camera, log,
                                       read_frames, read_json, world_box, world_from_scene)
 
 __all__ = ["DataError", "Split", "Scene", "load_scene", "generate_rays", "image_rays", "downscale_image",
@@ -360,6 +360,8 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
         test = train[::holdout_every]
         train = [f for k, f in enumerate(train) if k % holdout_every]
 
+    for frames in (train, train + test):  # the training views apart, then beside the test views
+        check_pose_set(frames, sources[0][1])
     images, sizes = _load_images(train + test, downscale)
     n = len(train)
     first = sources[0][1]

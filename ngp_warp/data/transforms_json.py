@@ -33,6 +33,7 @@ NGP_SCALE = 0.33  # instant-ngp's default world -> unit-cube scale (NERF_SCALE)
 NGP_OFFSET = (0.5, 0.5, 0.5)
 NGP_SCENE_KEYS = ("aabb_scale", "scale", "offset", "aabb", "contraction")
 MAX_AABB_SCALE = 2**15  # 16 occupancy cascades
+FAR_CAMERA = 1e4  # a camera this many times the median spread from the others is a broken pose
 _UNSUPPORTED_LENS_KEYS = ("ftheta_p0", "latlong", "equirectangular")
 PERSPECTIVE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 FISHEYE_MODEL = "OPENCV_FISHEYE"
@@ -59,12 +60,19 @@ def read_json(path: Path) -> dict:
     except (OSError, UnicodeDecodeError) as e:
         raise DataError(f"{path}: cannot read ({getattr(e, 'strerror', None) or e})") from None
     try:
-        meta = json.loads(text)
+        meta = json.loads(text, parse_int=_int_or_float)
     except json.JSONDecodeError as e:
         raise DataError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
+    except RecursionError:
+        raise DataError(f"{path}: JSON nested too deeply to read") from None
     if not isinstance(meta, dict):
         raise DataError(f"{path}: expected a JSON object at the top level, got {type(meta).__name__}")
     return meta
+
+
+def _int_or_float(digits: str) -> int | float:
+    """A JSON integer; one too long for a float becomes inf, which the finite checks name."""
+    return int(digits) if len(digits) <= 18 else float(digits)
 
 
 def _natural_key(s: str):
@@ -81,6 +89,8 @@ def _matrix(value, where: str, key: str = "transform_matrix") -> np.ndarray:
         raise DataError(f"{where}: {key} must be a 4x4 array of numbers")
     if not np.isfinite(m).all():
         raise DataError(f"{where}: {key} has non-finite values")
+    if m.shape == (4, 4) and np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-6:
+        raise DataError(f"{where}: {key}'s bottom row must be [0, 0, 0, 1], got {m[3].tolist()}")
     if abs(np.linalg.det(m[:3, :3])) < 1e-6:
         raise DataError(f"{where}: {key} is singular")
     return m
@@ -97,8 +107,25 @@ def _check_rigid(c2w: np.ndarray, where: str) -> None:
                         f"lengths {norms} and must be orthonormal)")
 
 
+def check_pose_set(frames: list[Frame], source) -> None:
+    """DataError for camera poses no capture has: every frame at one pose, or a camera more than
+    :data:`FAR_CAMERA` times the cameras' median spread from their median (a broken pose)."""
+    if len(frames) < 2:
+        return
+    c2w = np.stack([f.c2w for f in frames])
+    if np.ptp(c2w, axis=0).max() <= 1e-9 * max(1.0, float(np.abs(c2w).max())):
+        raise DataError(f"{source}: all {len(frames)} frames have the same camera pose (training needs views "
+                        f"from different places)")
+    distance = np.linalg.norm(c2w[:, :, 3] - np.median(c2w[:, :, 3], axis=0), axis=1)
+    spread, far = float(np.median(distance)), int(distance.argmax())
+    if spread > 0 and distance[far] > FAR_CAMERA * spread:
+        raise DataError(f"{frames[far].where}: its camera is {distance[far]:.3g} from the others' median position, "
+                        f"{distance[far] / spread:.3g} times their spread (a broken pose)")
+
+
 def image_path(base: Path, file_path, where: str) -> Path:
-    """The image file of ``file_path`` (extension optional), or the path tried when there is none."""
+    """The image file of ``file_path`` (extension optional), or the path tried when there is none;
+    a DataError when a folder, or a link that leads nowhere, stands where the image would be."""
     if not isinstance(file_path, str) or not file_path:
         raise DataError(f"{where}: file_path must be a non-empty string, got {short(file_path)}")
     p = Path(file_path.replace("\\", "/"))
@@ -106,6 +133,10 @@ def image_path(base: Path, file_path, where: str) -> Path:
     for q in [p] + [p.with_name(p.name + ext) for ext in IMAGE_EXTENSIONS]:
         if q.is_file():
             return q
+        if q.is_dir() and q.suffix.lower() in IMAGE_EXTENSIONS:
+            raise DataError(f"{where}: {q} is a folder, not an image")
+        if q.is_symlink() and not q.exists():
+            raise DataError(f"{where}: {q} is a link that leads nowhere (a loop or a missing target)")
     return p
 
 

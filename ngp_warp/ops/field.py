@@ -38,6 +38,7 @@ from ngp_warp.kernels import field as K
 
 INSTANT_NGP_FINEST_RESOLUTION = 2048.0  # instant-ngp's finest level over its unit cube
 INSTANT_NGP_LOG2_HASHMAP_SIZE = 19      # instant-ngp's table size per level, 2^19 entries
+MAX_RESOLUTION = float(1 << 24)         # a level's cells per axis: beyond, float32 grid coordinates lose cells
 INITIAL_OPTICAL_DEPTH = 0.05            # of an untrained contracted field across its inner box
 
 
@@ -74,6 +75,9 @@ class FieldConfig:
             raise ValueError(f"n_features_per_level must be 1, 2, 4 or 8, got {self.n_features_per_level!r}")
         if self.log2_hashmap_size > 30:
             raise ValueError(f"log2_hashmap_size must be at most 30, got {self.log2_hashmap_size}")
+        if self.finest_resolution is not None and self.finest_resolution > MAX_RESOLUTION:
+            raise ValueError(f"finest_resolution must be at most 2^24 cells (grid coordinates are float32), "
+                             f"got {self.finest_resolution:g}")
         if self.finest_resolution is not None and self.finest_resolution < self.base_resolution:
             raise ValueError(f"field.base_resolution {self.base_resolution} is above the finest level's "
                              f"{self.finest_resolution:g}: the levels would grow coarser")

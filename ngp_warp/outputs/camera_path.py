@@ -8,15 +8,19 @@ its −z axis, +y up), as the training cameras are.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from ngp_warp.data.transforms_json import read_json
+
 NGP_DEFAULT_SCALE = 0.33  # instant-ngp's world → unit-cube map when transforms.json has none
 NGP_DEFAULT_OFFSET = (0.5, 0.5, 0.5)
+MAX_FRAMES = 100_000  # a video's frames: nearly an hour at 30 fps
+MAX_SIDE = 16384  # a frame's width and height in pixels
+FPS_RANGE = (0.01, 1000.0)  # a GIF holds a frame at most 655 s
 
 
 @dataclass
@@ -32,6 +36,17 @@ class CameraPath:
     width: int
     height: int
     fps: float
+
+    def __post_init__(self):
+        """ValueError (one line) for a path no video can be made of: frames beyond
+        :data:`MAX_FRAMES`, a side beyond :data:`MAX_SIDE`, or fps outside :data:`FPS_RANGE`."""
+        if not 1 <= len(self.c2w) <= MAX_FRAMES:
+            raise ValueError(f"a video takes 1 to {MAX_FRAMES} frames, this path has {len(self.c2w)}")
+        if not (1 <= self.width <= MAX_SIDE and 1 <= self.height <= MAX_SIDE):
+            raise ValueError(f"frames of {self.width}x{self.height} pixels: each side must be 1 to {MAX_SIDE}")
+        if not FPS_RANGE[0] <= self.fps <= FPS_RANGE[1]:
+            raise ValueError(f"{self.fps:g} frames per second: a video takes {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g}")
+
 
 
 def _intrinsics_from_fov(fov_y_deg: torch.Tensor, width: int, height: int) -> torch.Tensor:
@@ -166,7 +181,7 @@ def ngp_transform(scene_dir: str | Path) -> tuple[float, list[float]]:
     for name in ("transforms.json", "transforms_train.json"):
         path = Path(scene_dir) / name
         if path.is_file():
-            meta = json.loads(path.read_text())
+            meta = read_json(path)
             return float(meta.get("scale", NGP_DEFAULT_SCALE)), [float(v) for v in meta.get("offset", NGP_DEFAULT_OFFSET)]
     return NGP_DEFAULT_SCALE, list(NGP_DEFAULT_OFFSET)
 
@@ -217,15 +232,10 @@ def load_camera_path(path: str | Path, width: int, height: int, n_frames: int, f
     ``base_cam.json`` (``width`` × ``height``, ``n_frames`` at ``fps``, instant-ngp's unit-cube
     map ``scale``/``offset``, see :func:`ngp_transform`). Raises ValueError with one line."""
     path = Path(path)
-    try:
-        meta = json.loads(path.read_text())
-    except OSError as e:
-        raise ValueError(f"{path}: cannot read it ({e.strerror or e})") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e.msg}, line {e.lineno})") from None
-    if isinstance(meta, dict) and "camera_path" in meta:
+    meta = read_json(path)  # a DataError, a ValueError, names a file that cannot be read
+    if "camera_path" in meta:
         return nerfstudio_path(meta, str(path))
-    if isinstance(meta, dict) and "path" in meta:
+    if "path" in meta:
         return instant_ngp_path(meta, str(path), width, height, n_frames, fps, scale, offset)
     raise ValueError(f"{path}: neither a nerfstudio camera_path.json (camera_path) nor an "
                      f"instant-ngp base_cam.json (path)")

@@ -15,6 +15,7 @@ from ngp_warp.progress import progress
 
 from ngp_warp.atomic import atomic_file
 from ngp_warp.outputs.camera_path import CameraPath, around_cameras, load_camera_path, ngp_transform
+from ngp_warp.training.memory_estimate import SettingsTooLarge, available_bytes
 
 RenderFrame = Callable[[torch.Tensor, torch.Tensor, int, int], dict]
 PATH_KINDS = ("orbit", "spiral")
@@ -66,6 +67,17 @@ def depth_path(video: Path) -> Path:
     return video.with_name(f"{video.stem}_depth{video.suffix}")
 
 
+def check_video_memory(n_frames: int, width: int, height: int, depth: bool) -> None:
+    """SettingsTooLarge (one line) when the frames of a video, which the writer holds on the host
+    (RGB bytes and their stack; with ``depth``, float32 depth and opacity too), need more memory
+    than the host has free."""
+    need = n_frames * width * height * (6 + (14 if depth else 0))
+    free = available_bytes(torch.device("cpu"))
+    if need > free:
+        raise SettingsTooLarge(f"a video of {n_frames} frames at {width}x{height} needs about {need / 1e9:.1f} GB "
+                               f"of host memory but {free / 1e9:.1f} GB are free: fewer frames or smaller ones")
+
+
 def render_path_video(render_frame: RenderFrame, path: CameraPath, out: str | Path, depth: bool = False,
                       show_progress: bool = True) -> list[Path]:
     """Render every camera of ``path`` and write the video ``out`` (and its depth video with
@@ -79,6 +91,7 @@ def render_path_video(render_frame: RenderFrame, path: CameraPath, out: str | Pa
         The paths written (a .gif instead of an .mp4 without imageio-ffmpeg).
     """
     out = Path(out)
+    check_video_memory(len(path.c2w), path.width, path.height, depth)
     frames, depths, opacities = [], [], []
     cameras = zip(path.c2w, path.intrinsics)
     for c2w, intrinsics in progress(cameras, desc="video", total=len(path.c2w), unit="frame", disable=not show_progress):

@@ -9,6 +9,7 @@ CPU generator state).
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -19,6 +20,7 @@ import torch
 
 from ngp_warp.atomic import atomic_file
 from ngp_warp.training.config import TrainConfig
+from ngp_warp.data.data_error import short
 from ngp_warp.data.loading import DataError, Scene, load_scene
 from ngp_warp.ops.field import FieldConfig
 from ngp_warp.training.trainer import Trainer
@@ -84,7 +86,32 @@ def read_checkpoint(path: Path) -> dict:
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__})") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an ngp-warp checkpoint")
+    _check_records(state, path)
     return state
+
+
+def _check_records(state: dict, path: Path) -> None:
+    """CheckpointError when a record a checkpoint holds has the wrong type or value (a damaged or
+    hand-edited file); records it lacks are left to the reader (another version's file)."""
+    def wrong(what: str, value) -> CheckpointError:
+        return CheckpointError(f"{path}: its {what} is {short(value)}, which no ngp-warp writes (a damaged "
+                               f"or hand-edited checkpoint)")
+
+    for key in ("scene", "train_config"):
+        if key in state and not isinstance(state[key], dict):
+            raise wrong(f"{key!r} record", state[key])
+    scene, config = state.get("scene", {}), state.get("train_config", {})
+    if "path" in scene and not isinstance(scene["path"], str):
+        raise wrong("scene path", scene["path"])
+    if "downscale" in scene and (type(scene["downscale"]) is not int or scene["downscale"] < 1):
+        raise wrong("downscale", scene["downscale"])
+    if "field" in config and not isinstance(config["field"], dict):
+        raise wrong("field settings", config["field"])
+    if "step" in state and (type(state["step"]) is not int or state["step"] < 0):
+        raise wrong("step", state["step"])
+    seconds = state.get("train_seconds", 0.0)
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0 <= seconds < math.inf:
+        raise wrong("training time", seconds)
 
 
 def _train_config(path: Path, saved: dict) -> TrainConfig:

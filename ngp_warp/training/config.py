@@ -9,12 +9,13 @@ from dataclasses import dataclass, field
 
 from ngp_warp._checks import check_numbers
 from ngp_warp.data.loading import Scene
-from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, FieldConfig
+from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, FieldConfig
 from ngp_warp.training.scene_defaults import (appearance_dim, choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
                                      distortion_weight, occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
 
 AABB_SCALES = tuple(2**k for k in range(MAX_AABB_SCALE.bit_length()))  # field boxes of 1 ... 2^15 unit cubes
+MIN_GRID_RESOLUTION = 4  # occupancy cells a side (16-px demo, 150 steps: 8.9, 10.5, 13.7, 15.4 dB at 1, 2, 4, 16)
 
 
 @dataclass
@@ -81,6 +82,11 @@ class TrainConfig:
                                      "near_gradient_distance"),
                        optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold",
                                  "distortion_weight"))
+        if self.grid_resolution < MIN_GRID_RESOLUTION:
+            raise ValueError(f"grid_resolution must be at least {MIN_GRID_RESOLUTION}: a grid of "
+                             f"{self.grid_resolution}³ cells cannot tell empty space from the subject")
+        if self.steps is not None and self.steps >= 2**63:
+            raise ValueError(f"steps must be below 2^63, got {self.steps}")
         if self.aabb_scale not in ("auto", None, *AABB_SCALES) or type(self.aabb_scale) not in (str, int, type(None)):
             raise ValueError(f"aabb_scale must be auto, None or a power of two up to {AABB_SCALES[-1]}, "
                              f"got {self.aabb_scale!r}")
@@ -194,8 +200,8 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str 
     """The finest hash-grid resolution whose cells are about one training pixel wide at the
     field box's centre: the box's longest side over the median pixel footprint (camera distance
     to the centre over the focal length fx), rounded, clamped to [64, 2048 per unit cube]
-    (instant-ngp's 2048 × aabb_scale). Training on ``subpixels``² rays per pixel makes the cells
-    √subpixels times finer.
+    (instant-ngp's 2048 × aabb_scale) and to 2^24. Training on ``subpixels``² rays per pixel
+    makes the cells √subpixels times finer.
 
     On lego at 400×400 this gives 413 cells. Measured there after 60 s (RESULTS.md): finest
     256 / 362 / 512 / 724 / 1024 / 2048 give 34.97 / 35.31 / 35.25 / 35.03 / 34.74 / 34.43 dB:
@@ -217,7 +223,7 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str 
     unit = float((scene.occupancy_aabb[3:] - scene.occupancy_aabb[:3]).max())
     ceiling = INSTANT_NGP_FINEST_RESOLUTION * side / unit
     grid_sides = 1 if contraction is None else 2
-    return float(grid_sides * min(max(round(side / max(footprint, 1e-12)), 64), ceiling))
+    return float(min(grid_sides * min(max(round(side / max(footprint, 1e-12)), 64), ceiling), MAX_RESOLUTION))
 
 
 def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> TrainConfig:

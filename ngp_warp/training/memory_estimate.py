@@ -5,12 +5,14 @@ Three parts dominate, each an upper bound of its first use:
 * the occupancy grid: ``levels × resolution³`` cells of a float32 density, a float32 splat
   buffer and a bit (9 bytes a cell with the mips, rounded up);
 * the hash tables: ``n_levels × 2^log2_hashmap_size × features`` float32 parameters, with their
-  gradient, two Adam moments and the weight average (5 copies);
+  gradient, two Adam moments and the weight average (5 copies), and likewise the MLPs' weights
+  and the appearance codes;
 * the first batch's march: before the grid has learnt anything every cell is occupied, so each
   of ``initial_rays`` rays takes every step across the coarsest cascade's box (its diagonal over
   the step, fewer with cone steps), and every marched sample costs its interval, position and
-  direction (40 bytes) plus the density pass over it (~360 bytes: the encoding's L × F outputs
-  and the MLP's hidden units; ~1.5 KB with the gradient graph when nothing is pruned).
+  direction (40 bytes) plus the density pass over it (~360 bytes at the default widths: the
+  encoding's L × F outputs and the MLP's hidden units; ~1.5 KB with the gradient graph when
+  nothing is pruned), scaled by the field's widths.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ TABLE_COPIES = 5
 MARCH_BYTES_PER_SAMPLE = 40
 FIELD_BYTES_PER_SAMPLE = {True: 360, False: 1500}  # prune (no-grad density pass) or not
 MAX_SAMPLES_PER_CALL = (2**31 - 1) // 16  # the hash grid indexes [N, levels] items with int32
+DEFAULT_SAMPLE_WIDTH = 2 * 16 + 3 * 64 + 16 + (16 + 16) + 3  # floats a sample holds at FieldConfig's defaults
 
 
 class SettingsTooLarge(ValueError):
@@ -39,12 +42,28 @@ class MemoryEstimate:
     grid_cells: int
     grid_bytes: int
     table_bytes: int
+    mlp_bytes: int
     first_batch_samples: int
     march_bytes: int
 
     @property
     def total(self) -> int:
-        return self.grid_bytes + self.table_bytes + self.march_bytes
+        return self.grid_bytes + self.table_bytes + self.mlp_bytes + self.march_bytes
+
+
+def mlp_parameters(field, n_images: int) -> int:
+    """Weights of a :class:`~ngp_warp.ops.field.FieldConfig`'s density and colour MLPs (as
+    :class:`~ngp_warp.ops.field.NGPField` builds them) and its ``n_images`` appearance codes."""
+    codes = field.appearance_dim or 0
+    density = (field.n_levels * field.n_features_per_level + 1) * field.hidden + (field.hidden + 1) * field.geo_features
+    colour = (field.geo_features + 16 + codes + 1) * field.hidden + (field.hidden + 1) * (field.hidden + 3)
+    return density + colour + n_images * codes
+
+
+def sample_width(field) -> int:
+    """Floats one sample holds through the field: encoding, hidden units, geometry and colour inputs."""
+    codes = field.appearance_dim or 0
+    return field.n_levels * field.n_features_per_level + 3 * field.hidden + field.geo_features * 2 + 16 + codes + 3
 
 
 def samples_per_ray(length: float, step: float, cone_angle: float, max_step: float) -> float:
@@ -76,8 +95,10 @@ def estimate(config, scene) -> MemoryEstimate:
         cone = config.cone_angle or 0.0
         per_ray = samples_per_ray(finest * 2 ** (levels - 1), step, cone, finest)
     samples = int(config.initial_rays * per_ray)
-    per_sample = MARCH_BYTES_PER_SAMPLE + FIELD_BYTES_PER_SAMPLE[bool(config.prune)]
-    return MemoryEstimate(cells, cells * GRID_BYTES_PER_CELL, table, samples, samples * per_sample)
+    widths = max(1.0, sample_width(f) / DEFAULT_SAMPLE_WIDTH)
+    per_sample = MARCH_BYTES_PER_SAMPLE + FIELD_BYTES_PER_SAMPLE[bool(config.prune)] * widths
+    mlps = mlp_parameters(f, len(scene.train.names)) * 4 * TABLE_COPIES
+    return MemoryEstimate(cells, cells * GRID_BYTES_PER_CELL, table, mlps, samples, int(samples * per_sample))
 
 
 def available_bytes(device: torch.device) -> int:
@@ -106,10 +127,10 @@ def check_fits(config, scene, device: torch.device, available: int | None = None
     e = estimate(config, scene)
     levels = e.grid_cells // config.grid_resolution ** 3
     parts = (f"occupancy grid {levels} × {config.grid_resolution}³ cells: {_gb(e.grid_bytes)}, "
-             f"hash tables {_gb(e.table_bytes)}, first batch {config.initial_rays} rays × up to "
+             f"hash tables {_gb(e.table_bytes)}, MLPs and codes {_gb(e.mlp_bytes)}, first batch {config.initial_rays} rays × up to "
              f"{e.first_batch_samples / max(config.initial_rays, 1):.3g} samples: {_gb(e.march_bytes)}")
-    hint = ("lower grid_resolution, initial_rays, field.log2_hashmap_size or the scene's aabb_scale, "
-            "or step by cone_angle=0.004")
+    hint = ("lower grid_resolution, initial_rays, field.log2_hashmap_size, field.hidden, field.geo_features "
+            "or the scene's aabb_scale, or step by cone_angle=0.004")
     if e.first_batch_samples > MAX_SAMPLES_PER_CALL:
         raise SettingsTooLarge(f"these settings march up to {e.first_batch_samples:.3g} samples in the first "
                                f"batch, more than one call takes ({MAX_SAMPLES_PER_CALL}) ({parts}); {hint}")
