@@ -120,7 +120,11 @@ def picture(run: Path, metrics: dict, height: int = 128) -> np.ndarray | None:
     if "per_image" not in metrics:
         return None
     name = Path(metrics["per_image"][0]["image"])
-    images = [iio.imread(name)[..., :3], iio.imread(run / "renders" / f"{name.stem}.png")[..., :3],
+    truth = iio.imread(name)
+    if truth.shape[-1] == 4:  # a NeRF-synthetic image, scored over white
+        alpha = truth[..., 3:].astype(np.float32) / 255.0
+        truth = (truth[..., :3] * alpha + 255.0 * (1.0 - alpha) + 0.5).astype(np.uint8)
+    images = [truth[..., :3], iio.imread(run / "renders" / f"{name.stem}.png")[..., :3],
               iio.imread(run / "depth" / f"{name.stem}.png")]
     images[2] = np.repeat(images[2][..., None], 3, -1) if images[2].ndim == 2 else images[2][..., :3]
     width = round(height * images[0].shape[1] / images[0].shape[0])

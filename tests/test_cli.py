@@ -1,6 +1,10 @@
 """Smoke tests of the ngp-warp command, including its one-line errors on bad input."""
 
 import json
+import shutil
+import signal
+import subprocess
+import time
 
 import pytest
 import torch
@@ -214,3 +218,15 @@ def test_the_demos_resume_hint_names_its_output_folder(tmp_path, capsys):
                tmp_path / "demo" / "scene")
     hint = f"ngp-warp train {tmp_path / 'demo' / 'scene'} --out {tmp_path / 'demo'} --resume"
     assert hint in capsys.readouterr().err
+
+
+@pytest.mark.skipif(shutil.which("ngp-warp") is None, reason="needs the installed ngp-warp command")
+@pytest.mark.parametrize("after", [0.3, 1.0])
+def test_ctrl_c_while_the_modules_load_is_one_line(after):
+    command = subprocess.Popen([shutil.which("ngp-warp"), "bench", "--quick", "--device", "cpu"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(after)  # the imports take seconds: the press lands while they load
+    command.send_signal(signal.SIGINT)
+    _, err = command.communicate(timeout=120)
+    assert command.returncode == 130 and err.strip().splitlines()[-1] == "ngp-warp: interrupted", err
+    assert "Traceback" not in err

@@ -330,3 +330,28 @@ def test_torch_func_grad_and_vmap_take_the_composite_and_jacrev_is_refused_in_on
     jacobian = torch.func.jacrev(lambda x: composite_ref.composite(x, rgbs.double(), t0.double(), t1.double(),
                                                                    ray_indices, n_rays)[1])(sigmas.double())
     assert jacobian.shape == (n_rays, s)  # the float64 twin takes every transform
+
+
+def test_torch_func_grad_and_vmap_take_the_encoding_and_jacrev_is_refused_in_one_line():
+    torch.manual_seed(7)
+    enc = HashGridEncoding(n_levels=4, log2_hashmap_size=10)
+    with torch.no_grad():
+        enc.params.uniform_(-1, 1)  # never all zero: every gradient below is non-trivial
+    x = torch.rand(64, 3)
+
+    def loss(params, points):
+        return torch.func.functional_call(enc, {"params": params}, (points,)).square().sum()
+
+    points = x.clone().requires_grad_(True)
+    want_params, want_x = torch.autograd.grad(loss(enc.params, points), (enc.params, points))
+    got_params, got_x = torch.func.grad(loss, argnums=(0, 1))(enc.params.detach(), x)
+    torch.testing.assert_close(got_params, want_params)
+    torch.testing.assert_close(got_x, want_x)
+    assert want_x.abs().sum() > 0 and want_params.abs().sum() > 0
+    grid = x.view(8, 8, 3)  # vmap over points: one longer list; over tables: one table at a time
+    torch.testing.assert_close(torch.vmap(enc, in_dims=1)(grid), enc(grid.transpose(0, 1).reshape(64, 3)).view(8, 8, -1))
+    tables = torch.stack([enc.params.detach(), 2 * enc.params.detach()])
+    both = torch.vmap(lambda p: torch.func.functional_call(enc, {"params": p}, (x,)))(tables)
+    torch.testing.assert_close(both[1], torch.func.functional_call(enc, {"params": tables[1]}, (x,)))
+    with pytest.raises(ValueError, match="HashGridEncoding's Warp backward cannot be vmapped"):
+        torch.func.jacrev(enc)(x[:2])

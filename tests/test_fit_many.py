@@ -2,6 +2,7 @@
 skips them, an interrupted scene resumed, and bad manifests as one line."""
 
 import json
+import socket
 import subprocess
 import sys
 
@@ -58,6 +59,11 @@ def test_two_ranks_fit_three_scenes_then_a_rerun_skips_them(manifest, tmp_path, 
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ranks"] == 2 and [r["scene"] for r in summary["scenes"]] == ["chair", "lamp", "mug"]
+    per_rank = summary["per_rank"]  # the queue hands every scene out once
+    assert [r["rank"] for r in per_rank] == [0, 1] and sum(r["scenes"] for r in per_rank) == 3
+    assert all(r["busy_seconds"] > 0 and 0 <= r["idle_seconds"] <= summary["wall_seconds"] for r in per_rank)
+    assert sorted(r["rank"] for r in summary["scenes"]) == sorted(
+        k for r in per_rank for k in [r["rank"]] * r["scenes"])
     assert all(r["status"] == "trained" and r["steps"] == 4 and r["psnr"] > 0 for r in summary["scenes"])
     assert "chair" in done.stdout and "3 fitted" in done.stdout
     for name in ("chair", "lamp", "mug"):
@@ -72,6 +78,26 @@ def test_two_ranks_fit_three_scenes_then_a_rerun_skips_them(manifest, tmp_path, 
     assert rows["chair"]["steps"] == 4 and rows["mug"]["steps"] == 6
     assert (out / "chair" / "metrics.json").stat().st_mtime_ns == stamps["chair"]
     assert "2 skipped as finished" in capsys.readouterr().out
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_two_nodes_on_one_host_share_the_scenes_through_the_rendezvous(manifest, tmp_path):
+    out = tmp_path / "out"
+    node = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc-per-node", "1",
+            "--rdzv-backend", "c10d", "--rdzv-endpoint", f"127.0.0.1:{_free_port()}", "--rdzv-id", "fit-many-test",
+            "-m", "ngp_warp.cli", "fit-many", str(manifest), "--out", str(out), "--steps", "3", *TINY]
+    nodes = [subprocess.Popen(node, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outputs = [p.communicate(timeout=300) for p in nodes]
+    assert [p.returncode for p in nodes] == [0, 0], outputs[0][1][-2000:] + outputs[1][1][-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ranks"] == 2 and sum(r["scenes"] for r in summary["per_rank"]) == 3
+    assert all(r["status"] == "trained" and r["steps"] == 3 for r in summary["scenes"])
 
 
 def test_incomplete_metrics_are_not_finished(tmp_path):

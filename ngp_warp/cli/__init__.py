@@ -7,16 +7,19 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ngp_warp.cli.bench import cmd_bench
-from ngp_warp.cli.common import CHECKPOINT, UserError, folder_name, positive, seed_number
-from ngp_warp.cli.evaluate import cmd_eval
-from ngp_warp.cli.export import add_export_parser
-from ngp_warp.cli.fit_many import add_fit_many_parser
-from ngp_warp.cli.process import add_process_parser
-from ngp_warp.cli.render import add_path_arguments, cmd_render
-from ngp_warp.cli.train import cmd_demo, cmd_train
-from ngp_warp.cli.view import add_view_parser
-from ngp_warp.outputs.camera_path import MAX_FRAMES
+from ngp_warp import _interrupt_while_loading
+
+with _interrupt_while_loading():
+    from ngp_warp.cli.bench import cmd_bench
+    from ngp_warp.cli.common import CHECKPOINT, MAX_DOWNSCALE, UserError, folder_name, positive, seed_number
+    from ngp_warp.cli.evaluate import cmd_eval
+    from ngp_warp.cli.export import add_export_parser
+    from ngp_warp.cli.fit_many import add_fit_many_parser
+    from ngp_warp.cli.process import add_process_parser
+    from ngp_warp.cli.render import add_path_arguments, cmd_render
+    from ngp_warp.cli.train import cmd_demo, cmd_train
+    from ngp_warp.cli.view import add_view_parser
+    from ngp_warp.outputs.camera_path import MAX_FRAMES
 from ngp_warp.wall_clock import command_started
 
 __all__ = ["CHECKPOINT", "UserError", "main"]
@@ -34,7 +37,7 @@ def _parser() -> argparse.ArgumentParser:
         budget = sp.add_mutually_exclusive_group()
         budget.add_argument("--steps", type=positive(int), help="training steps")
         budget.add_argument("--seconds", type=positive(float), help="training wall-clock budget in seconds")
-        sp.add_argument("--downscale", type=positive(int), help="shrink images by this integer factor (default 1)")
+        sp.add_argument("--downscale", type=positive(int, high=MAX_DOWNSCALE), help="shrink images by this integer factor (default 1)")
         sp.add_argument("--seed", type=seed_number, default=0)
         sp.add_argument("--target-samples", type=positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -99,10 +102,11 @@ def main(argv: list[str] | None = None) -> int:
         from ngp_warp.training.distributed import launch_ranks
 
         return launch_ranks(args, sys.argv[1:] if argv is None else argv)
-    from ngp_warp.training.checkpoint import CheckpointError
-    from ngp_warp.data.loading import DataError
-    from ngp_warp.training.memory_estimate import SettingsTooLarge
-    from ngp_warp.training.run_folder import SIGTERM_EXIT, RunFolderError, Terminated, sigterm_as_interrupt
+    with _interrupt_while_loading():
+        from ngp_warp.training.checkpoint import CheckpointError
+        from ngp_warp.data.loading import DataError
+        from ngp_warp.training.memory_estimate import SettingsTooLarge
+        from ngp_warp.training.run_folder import SIGTERM_EXIT, RunFolderError, Terminated, sigterm_as_interrupt
 
     try:
         with sigterm_as_interrupt():

@@ -14,6 +14,7 @@ CHECKPOINT = "checkpoint.pt"
 
 
 ORBIT_FPS = 20.0  # the training run's orbit video
+MAX_DOWNSCALE = 1024  # --downscale: beyond it no image keeps a pixel
 NAME_MAX = 255  # bytes in one file or folder name (Linux, macOS and Windows file systems)
 
 

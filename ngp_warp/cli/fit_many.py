@@ -2,11 +2,13 @@
 
 MANIFEST is a text file naming scene folders, one a line (relative to the file; blank lines and
 ``#`` comments are skipped; a line may be a glob), or a glob itself. Under torchrun (or with
-``--gpus N``) the scenes are dealt out over the ranks, scene ``i`` to rank ``i mod N``; each rank
+``--gpus N``) the scenes are handed out as ranks free up: each rank claims the next scene from a
+counter in the process group's store, so a slow scene does not leave another rank idle. Each rank
 trains its scenes one at a time, on its own GPU or as a CPU process, through the ``train``
 command's path, into ``DIR/<scene folder name>/`` (checkpoint, metrics.json, renders, ...). A
 scene whose metrics.json is complete is skipped; one with a checkpoint resumes with what is left
-of the budget. Rank 0 then writes ``DIR/summary.json`` and prints the table (PSNR, time per scene).
+of the budget. Rank 0 then writes ``DIR/summary.json`` (each scene's row, with the rank that fit
+it, and each rank's busy and idle seconds) and prints the table (PSNR, time per scene).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from ngp_warp.cli.common import CHECKPOINT, UserError, check_run_apart, train_an
 from ngp_warp.data.data_error import DataError
 
 SUMMARY = "summary.json"
+QUEUE_KEY = "ngp-warp/fit-many/next-scene"
 METRICS_KEYS = ("psnr", "steps", "train_seconds", "n_test_images", "per_image")
 
 
@@ -132,15 +135,29 @@ def summary_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _all_rows(rows: list[dict]) -> list[dict]:
-    """Every rank's rows, on every rank (gathered through the process group, if any)."""
+def claimed_scenes(n_scenes: int):
+    """The indices of the scenes this rank fits, each claimed when the rank is free: the next
+    value of a counter in the process group's store (every scene once over all ranks), or all
+    of them in order outside a process group."""
     import torch.distributed as dist
 
     if not (dist.is_available() and dist.is_initialized()):
-        return rows
+        yield from range(n_scenes)
+        return
+    store = dist.distributed_c10d._get_default_store()  # torchrun's rendezvous store, shared by the ranks
+    while (index := store.add(QUEUE_KEY, 1) - 1) < n_scenes:
+        yield index
+
+
+def _all_ranks(rows: list[dict], busy: float) -> tuple[list[dict], list[float]]:
+    """Every rank's rows and busy seconds, on every rank (gathered through the process group, if any)."""
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()):
+        return rows, [busy]
     gathered = [None] * dist.get_world_size()
-    dist.all_gather_object(gathered, rows)
-    return [row for part in gathered for row in part]
+    dist.all_gather_object(gathered, (rows, busy))
+    return [row for part, _ in gathered for row in part], [b for _, b in gathered]
 
 
 def cmd_fit_many(args) -> None:
@@ -160,18 +177,23 @@ def cmd_fit_many(args) -> None:
     rank, world = rank_and_size()
     args.quiet = args.quiet or rank != 0  # one rank's progress bars on the terminal
     start = time.perf_counter()
-    rows = [fit_scene(scene, out / scene.name, args) for scene in scenes[rank::world]]
-    rows = sorted(_all_rows(rows), key=lambda r: [s.name for s in scenes].index(r["scene"]))
+    rows = [{**fit_scene(scenes[i], out / scenes[i].name, args), "rank": rank} for i in claimed_scenes(len(scenes))]
+    busy = time.perf_counter() - start
+    rows, busy_per_rank = _all_ranks(rows, busy)
+    rows = sorted(rows, key=lambda r: [s.name for s in scenes].index(r["scene"]))
     wall = time.perf_counter() - start
     fitted = sum(r["status"] in ("trained", "resumed") for r in rows)
     failed = [r["scene"] for r in rows if r["status"] == "failed"]
     if is_main_rank():
+        per_rank = [{"rank": k, "scenes": sum(r["rank"] == k for r in rows), "busy_seconds": b,
+                     "idle_seconds": wall - b} for k, b in enumerate(busy_per_rank)]
         summary = {"ranks": world, "wall_seconds": wall, "scenes_per_hour": 3600.0 * fitted / wall,
-                   "scenes": rows}
+                   "per_rank": per_rank, "scenes": rows}
         atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2))
         print(summary_table(rows))
+        idle = ", ".join(f"rank {r['rank']} {r['idle_seconds']:.1f} s" for r in per_rank)
         print(f"{len(rows)} scenes ({fitted} fitted, {len(rows) - fitted - len(failed)} skipped as finished, "
-              f"{len(failed)} failed) on {world} rank(s) in {wall:.1f} s; wrote {out / SUMMARY}")
+              f"{len(failed)} failed) on {world} rank(s) in {wall:.1f} s (idle: {idle}); wrote {out / SUMMARY}")
     if failed:
         raise FitManyError(f"{len(failed)} of {len(rows)} scenes failed: {', '.join(failed)} (see {out / SUMMARY})")
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from ngp_warp.cli.common import positive
 from ngp_warp.data.data_error import DataError
+from ngp_warp.outputs.camera_path import FPS_RANGE, MAX_FRAMES
 from ngp_warp.data.process import CAMERA_MODELS, EXHAUSTIVE_MAX, EXTRA, MAPPERS, SIFT_KINDS, ProcessConfig, process, require_pycolmap
 
 def add_process_parser(subparsers) -> None:
@@ -12,8 +14,10 @@ def add_process_parser(subparsers) -> None:
     p.add_argument("input", help="a folder of images (.jpg, .jpeg, .png) or a video file")
     p.add_argument("--out", required=True, help="scene folder to create (images/, sparse/0, transforms.json)")
     rate = p.add_mutually_exclusive_group()
-    rate.add_argument("--frames", type=int, help="video: keep this many frames, evenly spread (default 100)")
-    rate.add_argument("--fps", type=float, help="video: keep this many frames per second of video")
+    rate.add_argument("--frames", type=positive(int, high=MAX_FRAMES),
+                      help="video: keep this many frames, evenly spread (default 100)")
+    rate.add_argument("--fps", type=positive(float, high=FPS_RANGE[1]),
+                      help="video: keep this many frames per second of video")
     p.add_argument("--matcher", default="auto", choices=("auto", "exhaustive", "sequential"),
                    help=f"auto: sequential for a video or over {EXHAUSTIVE_MAX} photos, else exhaustive")
     p.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS,

@@ -30,6 +30,9 @@ def cmd_demo(args) -> None:
     # every option is checked before the scene is generated
     device = resolve_device(args.device)
     demo = DEMOS[args.scene]
+    if (args.downscale or 1) > demo.pixels:
+        raise UserError(f"--downscale {args.downscale}: the {args.scene} scene's images are {demo.pixels}x"
+                        f"{demo.pixels} pixels")
     config = with_settings(demo.config(device, args.steps, args.seconds, args.seed), args)
     RunFolder(Path(args.out), overwrite=args.overwrite, flags=(None, "--overwrite"))
     out = writable_dir(Path(args.out))

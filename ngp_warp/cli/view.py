@@ -7,7 +7,9 @@ import socket
 import sys
 from pathlib import Path
 
-from ngp_warp.cli.common import CHECKPOINT, UserError, new_trainer, positive, resolve_device, train_config
+from ngp_warp.outputs.camera_path import MAX_SIDE
+from ngp_warp.cli.common import (CHECKPOINT, MAX_DOWNSCALE, UserError, new_trainer, positive, resolve_device, seed_number,
+                                 train_config)
 
 
 def add_view_parser(subparsers, positive_int):
@@ -18,15 +20,15 @@ def add_view_parser(subparsers, positive_int):
     v.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; forward it over SSH: ssh -L 8080:localhost:8080)")
     v.add_argument("--port", type=positive(int, high=65535), default=8080, help="port (default 8080)")
-    v.add_argument("--resolution", type=positive_int,
+    v.add_argument("--resolution", type=positive(int, high=MAX_SIDE),
                    help="longest side of a resting frame in pixels (default 800 on CUDA, 200 on the CPU)")
-    v.add_argument("--moving-resolution", type=positive_int,
+    v.add_argument("--moving-resolution", type=positive(int, high=MAX_SIDE),
                    help="longest side while the camera moves (default a quarter of --resolution)")
     v.add_argument("--scene", help="a run's scene folder, if it moved since training")
     v.add_argument("--steps", type=positive_int, help="live training: steps (default 20000)")
-    v.add_argument("--seconds", type=float, help="live training: wall-clock budget in seconds")
-    v.add_argument("--downscale", type=positive_int, default=1, help="live training: shrink images by this factor")
-    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--seconds", type=positive(float), help="live training: wall-clock budget in seconds")
+    v.add_argument("--downscale", type=positive(int, high=MAX_DOWNSCALE), default=1, help="live training: shrink images by this factor")
+    v.add_argument("--seed", type=seed_number, default=0)
     v.add_argument("--target-samples", type=positive_int, help="live training: samples per batch")
     v.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="live training: any setting")
     v.set_defaults(func=cmd_view)
@@ -40,10 +42,17 @@ def load_target(args, device: str):
 
     target = Path(args.target)
     if (target / CHECKPOINT).is_file():
+        live_only = [flag for flag, given in (("--steps", args.steps), ("--seconds", args.seconds),
+                                              ("--downscale", args.downscale != 1), ("--seed", args.seed),
+                                              ("--target-samples", args.target_samples), ("--set", args.set)) if given]
+        if live_only:
+            raise UserError(f"{', '.join(live_only)}: settings of live training, but {target} is a trained run "
+                            f"(give a scene folder to train one live)")
         return load_trainer(target / CHECKPOINT, device=device, scene_path=args.scene)[0], False
     if not target.exists():
         raise UserError(f"{target}: no such run or scene folder")
-    return new_trainer(load_scene(target, downscale=args.downscale), train_config(args, device), device), True
+    config = train_config(args, device)  # bad settings before the scene is read
+    return new_trainer(load_scene(target, downscale=args.downscale), config, device), True
 
 
 def check_listen_address(host: str, port: int) -> None:

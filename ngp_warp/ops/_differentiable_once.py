@@ -7,6 +7,8 @@ the incoming gradient itself requires grad, and treats the saved inputs as const
 from __future__ import annotations
 
 import torch
+from torch._C import _functorch
+from torch._functorch.pyfunctorch import temporarily_clear_interpreter_stack as outside_torch_func
 
 
 SECOND_DERIVATIVE = ("{op}'s backward is a hand-written Warp kernel, differentiable once: a second derivative "
@@ -40,3 +42,14 @@ def refuse_second_derivative(op: str, grads: tuple, sources: tuple) -> tuple:
     tied = iter(_Refused.apply(op, len(present), *present,
                                *[t for t in sources if isinstance(t, torch.Tensor) and t.requires_grad]))
     return tuple(None if g is None else next(tied) for g in grads)
+
+
+def plain(t: torch.Tensor | None, op: str = "composite") -> torch.Tensor | None:
+    """``t`` without torch.func's gradient-tracking wrappers (a Warp launch needs storage);
+    ValueError for a vmapped (batched) tensor, whose extra dimension the kernels would misread."""
+    while t is not None and _functorch.is_functorch_wrapped_tensor(t):
+        if _functorch.is_batchedtensor(t):
+            raise ValueError(f"{op}'s Warp backward cannot be vmapped (torch.func.jacrev, jacfwd, vmap of a "
+                             "gradient): use torch.func.grad per output, or float64 inputs (the pure-torch twin)")
+        t = _functorch.get_unwrapped(t)
+    return t

@@ -21,28 +21,16 @@ to any order, e.g. for ``torch.autograd.gradcheck``.
 from __future__ import annotations
 
 import torch
-from torch._C import _functorch
 from torch.fx.experimental.symbolic_shapes import guard_or_false
 
 from ngp_warp import _wp
-from ngp_warp.ops._differentiable_once import SECOND_DERIVATIVE, refuse_second_derivative
+from ngp_warp.ops._differentiable_once import SECOND_DERIVATIVE, plain as _plain, refuse_second_derivative
 from ngp_warp._reference import composite as reference
 from ngp_warp.kernels import composite as K
 
 # CUDA block size of this module's kernels: one thread walks a whole ray, and a batch has ~10^4
 # rays, so small blocks spread them over all multiprocessors.
 _BLOCK = 32
-
-
-def _plain(t: torch.Tensor | None) -> torch.Tensor | None:
-    """``t`` without torch.func's gradient-tracking wrappers (a Warp launch needs storage);
-    ValueError for a vmapped (batched) tensor, whose extra dimension the kernels would misread."""
-    while t is not None and _functorch.is_functorch_wrapped_tensor(t):
-        if _functorch.is_batchedtensor(t):
-            raise ValueError("composite's Warp backward cannot be vmapped (torch.func.jacrev, jacfwd, vmap of a "
-                             "gradient): use torch.func.grad per output, or float64 inputs (the pure-torch twin)")
-        t = _functorch.get_unwrapped(t)
-    return t
 
 
 def launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: float):

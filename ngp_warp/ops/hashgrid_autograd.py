@@ -7,32 +7,51 @@ from __future__ import annotations
 
 import torch
 
-from ngp_warp.ops._differentiable_once import SECOND_DERIVATIVE, refuse_second_derivative
+from ngp_warp.ops._differentiable_once import SECOND_DERIVATIVE, outside_torch_func, plain, refuse_second_derivative
 from ngp_warp.ops.op_registry import lookup
 
 
+OP = "HashGridEncoding"
+
+
 class HashGridFunction(torch.autograd.Function):
-    """Encode ``x`` [N, D] float32 with ``params`` through ``enc``'s kernels."""
+    """Encode ``x`` [N, D] float32 with ``params`` through ``enc``'s kernels. In the
+    ``setup_context`` form, so that torch.func's grad and vmap take it."""
 
     @staticmethod
-    def forward(ctx, x, params, enc):
+    def forward(x, params, enc):
+        return enc._encode(x, params)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        x, params, enc = inputs
         ctx.enc = enc
         ctx.save_for_backward(x, params)
-        return enc._encode(x, params)
+
+    @staticmethod
+    def vmap(info, in_dims, x, params, enc):
+        """Under torch.func.vmap: points batched over a dimension are one longer list of points
+        (each point is encoded on its own); a batch of tables is encoded one table at a time."""
+        x_dim, params_dim, _ = in_dims
+        if params_dim is not None:
+            xs = [x] * info.batch_size if x_dim is None else x.unbind(x_dim)
+            return torch.stack([HashGridFunction.apply(xi, p, enc) for xi, p in zip(xs, params.unbind(params_dim))]), 0
+        x = x.movedim(x_dim, 0)
+        out = HashGridFunction.apply(x.reshape(-1, x.shape[-1]).contiguous(), params, enc)
+        return out.reshape(*x.shape[:-1], out.shape[-1]), 0
 
     @staticmethod
     def backward(ctx, grad_out):
         x, params = ctx.saved_tensors
         enc = ctx.enc
         need_x, need_params = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        if torch.is_grad_enabled():  # create_graph: the kernels' results are tied, and refuse a second derivative
-            with torch.no_grad():
-                grads = HashGridFunction.backward(ctx, grad_out)[:2]
-            return (*refuse_second_derivative("HashGridEncoding", grads, (x, params, grad_out)), None)
-        grad = aligned(grad_out.contiguous())
-        grad_x = enc._grad_x(x, params, grad) if need_x else None
-        grad_params = enc._grad_params(x, grad) if need_params else None
-        return grad_x, grad_params, None
+        px, pp, grad = plain(x, OP), plain(params, OP), plain(grad_out, OP)
+        with torch.no_grad(), outside_torch_func():  # the kernels on plain tensors, torch.func's wrappers off
+            grad = aligned(grad.contiguous())
+            grad_x = enc._grad_x(px, pp, grad) if need_x else None
+            grad_params = enc._grad_params(px, grad) if need_params else None
+        # under create_graph the results are tied to the inputs, so that a second derivative raises
+        return (*refuse_second_derivative(OP, (grad_x, grad_params), (x, params, grad_out)), None)
 
 
 def aligned(t: torch.Tensor) -> torch.Tensor:
@@ -79,7 +98,7 @@ def _encode_op_backward(ctx, grad_out):
 
 
 def _refuse(ctx, *_):
-    raise RuntimeError(SECOND_DERIVATIVE.format(op="HashGridEncoding"))
+    raise RuntimeError(SECOND_DERIVATIVE.format(op=OP))
 
 
 _encode_op.register_autograd(_encode_op_backward, setup_context=_save)

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from ngp_warp._checks import check_numbers
 from ngp_warp.data.loading import Scene
 from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, FieldConfig
+from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
 from ngp_warp.training.scene_defaults import (appearance_dim, choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
                                      distortion_weight, occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
@@ -87,6 +88,9 @@ class TrainConfig:
                              f"{self.grid_resolution}³ cells cannot tell empty space from the subject")
         if self.steps is not None and self.steps >= 2**63:
             raise ValueError(f"steps must be below 2^63, got {self.steps}")
+        if self.target_samples is not None and self.target_samples > MAX_SAMPLES_PER_CALL:
+            raise ValueError(f"target_samples must be at most {MAX_SAMPLES_PER_CALL} (the samples one kernel call "
+                             f"takes), got {self.target_samples}")
         if self.aabb_scale not in ("auto", None, *AABB_SCALES) or type(self.aabb_scale) not in (str, int, type(None)):
             raise ValueError(f"aabb_scale must be auto, None or a power of two up to {AABB_SCALES[-1]}, "
                              f"got {self.aabb_scale!r}")

@@ -42,6 +42,7 @@ class Demo:
     config: Callable[[str, int | None, float | None, int], TrainConfig]
     folder: str
     write: Callable[..., object]
+    pixels: int = 100  # the images' width and height, as ``write`` renders them by default
 
 
 DEMOS = {

@@ -95,6 +95,8 @@ def launch_ranks(args, argv: list[str]) -> int:
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count < args.gpus:
             error = f"this machine has {count} CUDA GPU(s) (with --device cpu: {args.gpus} CPU processes)"
+    elif args.gpus > (os.cpu_count() or 1):
+        error = f"this machine has {os.cpu_count() or 1} CPU cores, too few for {args.gpus} CPU processes"
     if error is not None:
         print(f"ngp-warp: error: --gpus {args.gpus}: {error}", file=sys.stderr)
         return 2
