@@ -10,7 +10,8 @@
 4. a batch in which every ray misses: the result keeps a grad_fn and ``backward`` runs;
 5. ``torch.compile(fullgraph=True)`` of ``composite``: no graph break, the same values and
    gradients as eager;
-6. ``torch.autograd.gradcheck`` of ``composite`` in float64.
+6. ``torch.autograd.gradcheck`` of ``composite`` in float64;
+7. ``torch.func.grad`` and ``vmap`` of the hash-grid encoding equal to autograd; ``jacrev`` refused.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import argparse
 
 import torch
 
-from ngp_warp import MarchOptions, OccupancyGrid, composite, render_rays
+from ngp_warp import HashGridEncoding, MarchOptions, OccupancyGrid, composite, render_rays
 from ngp_warp._reference import composite as composite_ref
 
 CENTRE = torch.tensor([0.1, -0.05, 0.0])
@@ -143,9 +144,29 @@ def gradcheck_composite(device: str) -> tuple[bool, str]:
     return ok, "float64 through the public op (the pure-torch twin)"
 
 
+def func_encoding(device: str) -> tuple[bool, str]:
+    enc = HashGridEncoding(n_levels=4, log2_hashmap_size=10).to(device)
+    with torch.no_grad():
+        enc.params.uniform_(-1, 1, generator=torch.Generator(device).manual_seed(3))
+    x = torch.rand(64, 3, device=device, generator=torch.Generator(device).manual_seed(4))
+    points = x.clone().requires_grad_(True)
+    expected = torch.autograd.grad(enc(points).square().sum(), points)[0]
+    got = torch.func.grad(lambda p: enc(p).square().sum())(x)
+    with torch.no_grad():
+        batched, eager = torch.vmap(enc)(x.view(8, 8, 3)), enc(x)
+    diff = max(float((got - expected).abs().max()), float((batched.view(64, -1) - eager).abs().max()))
+    try:
+        torch.func.jacrev(enc)(x[:2])
+        refused = False
+    except ValueError:
+        refused = True
+    return diff == 0.0 and refused, f"grad and vmap equal to autograd (difference {diff:.1e}); jacrev refused"
+
+
 CASES = {"d/d rays_d, view-dependent field": rays_d_gradient, "second derivative": second_order,
          "strides and leading shapes": strides_and_shapes, "every ray misses": all_miss,
-         "torch.compile(composite)": compiled_composite, "gradcheck(composite)": gradcheck_composite}
+         "torch.compile(composite)": compiled_composite, "gradcheck(composite)": gradcheck_composite,
+         "torch.func on the encoding": func_encoding}
 
 
 def run(device: str) -> list[tuple[str, bool, str]]:

@@ -203,7 +203,7 @@ BAD = {
     "mixed lenses": (lambda p: _edit(p, _set("is_fisheye", True, frame=2)),
                      "frame 2: mixes fisheye and perspective cameras"),
     "bad world_from_scene": (lambda p: _edit(p, lambda m: m.update(world_from_scene=BAD_LAST_ROW)),
-                             "world_from_scene must be a 4x4 matrix with last row 0 0 0 1"),
+                             "world_from_scene's bottom row must be [0, 0, 0, 1]"),
     "bad json": (lambda p: (p / "transforms_train.json").write_text('{"frames": [\n  {"file_path": }\n]}'),
                  "transforms_train.json: not valid JSON (Expecting value at line 2, column 17)"),
     "json list": (lambda p: (p / "transforms_train.json").write_text("[1, 2]"), "expected a JSON object"),

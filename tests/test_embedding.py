@@ -205,7 +205,7 @@ def test_the_check_script_holds_on_every_case():
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     results = script.run("cpu")
-    assert len(results) == 6 and all(ok for _, ok, _ in results), results
+    assert len(results) == 7 and all(ok for _, ok, _ in results), results
 
 
 def test_nerfacc_options_alpha_thre_per_ray_interval_and_normalised_depth():

@@ -157,8 +157,10 @@ def test_interrupt_leaves_nothing(tmp_path, monkeypatch):
 def test_settings_errors_are_one_line(tmp_path):
     with pytest.raises(SystemExit):  # argparse: --frames and --fps exclude each other
         _cli([str(tmp_path), "--out", str(tmp_path / "s"), "--frames", "3", "--fps", "2"])
-    with pytest.raises(DataError, match="frames must be positive"):
+    with pytest.raises(SystemExit):  # argparse: a positive count
         _cli([str(tmp_path), "--out", str(tmp_path / "s"), "--frames", "0"])
+    with pytest.raises(ValueError, match="frames must be positive"):  # the setting itself, for library callers
+        P.ProcessConfig(frames=0).check()
 
 
 def _blur(image: np.ndarray) -> np.ndarray:

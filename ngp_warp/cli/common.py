@@ -56,7 +56,10 @@ def _probe_write(folder: Path) -> None:
 
 def check_run_apart(run: Path, scene: Path, flag: str = "--out") -> None:
     """UserError when the run folder ``run`` is the scene's folder (``scene``: a folder or a
-    transforms file), inside it, or holds it: the run would be written into the dataset."""
+    transforms file, when it exists), inside it, or holds it: the run would be written into the
+    dataset."""
+    if not scene.exists():
+        return  # the loader names a scene that is not there
     dataset = (scene if scene.is_dir() else scene.parent).resolve()
     run = run.resolve()
     if run == dataset or dataset in run.parents or run in dataset.parents:

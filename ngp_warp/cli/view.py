@@ -42,9 +42,8 @@ def load_target(args, device: str):
 
     target = Path(args.target)
     if (target / CHECKPOINT).is_file():
-        live_only = [flag for flag, given in (("--steps", args.steps), ("--seconds", args.seconds),
-                                              ("--downscale", args.downscale != 1), ("--seed", args.seed),
-                                              ("--target-samples", args.target_samples), ("--set", args.set)) if given]
+        given = {"--steps": None, "--seconds": None, "--downscale": 1, "--seed": 0, "--target-samples": None, "--set": []}
+        live_only = [flag for flag, unset in given.items() if getattr(args, flag[2:].replace("-", "_"), unset) != unset]
         if live_only:
             raise UserError(f"{', '.join(live_only)}: settings of live training, but {target} is a trained run "
                             f"(give a scene folder to train one live)")

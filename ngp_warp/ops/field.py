@@ -75,7 +75,7 @@ class FieldConfig:
             raise ValueError(f"n_features_per_level must be 1, 2, 4 or 8, got {self.n_features_per_level!r}")
         if self.log2_hashmap_size > 30:
             raise ValueError(f"log2_hashmap_size must be at most 30, got {self.log2_hashmap_size}")
-        if self.finest_resolution is not None and self.finest_resolution > MAX_RESOLUTION:
+        if self.finest_resolution is not None and MAX_RESOLUTION < self.finest_resolution < math.inf:
             raise ValueError(f"finest_resolution must be at most 2^24 cells (grid coordinates are float32), "
                              f"got {self.finest_resolution:g}")
         if self.finest_resolution is not None and self.finest_resolution < self.base_resolution:

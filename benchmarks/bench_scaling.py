@@ -1,0 +1,114 @@
+"""One GPU against several: data-parallel training and fit-many, through the commands a user runs.
+
+    python benchmarks/bench_scaling.py --scene ../shared/data/lego_half --gpus 1,2 --seconds 8,15 \
+        --target 35 [--fit-many 8 --fit-many-steps 3000] [--device cuda] [--out bench_scaling]
+
+Prints two tables:
+
+1. ``ngp-warp train SCENE --seconds S --gpus G --no-video`` for every G and S: PSNR, steps,
+   ms per step, the wall clock by phase (metrics.json's ``wall_seconds``: start-up, training,
+   checkpoint, evaluation), and per G the seconds of training to reach ``--target`` dB, read off
+   the line through the two budgets that bracket it (or "not reached").
+2. ``ngp-warp fit-many`` over ``--fit-many`` generated demo scenes of unequal size (12 to 48 views
+   at 48 to 96 pixels) for every G: wall seconds, scenes per hour, each rank's idle seconds
+   (summary.json), and scenes per hour against one rank.
+
+With ``--device cpu`` the ranks are CPU processes joined by gloo (a smoke run of the same paths).
+The all-reduce's share of a step is not instrumented yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+
+def run(command: list[str]) -> None:
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"failed ({done.returncode}): {' '.join(command)}\n{done.stderr[-2000:]}")
+
+
+def train_row(scene: Path, out: Path, gpus: int, seconds: float, device: str) -> dict:
+    run(["ngp-warp", "train", str(scene), "--out", str(out), "--seconds", str(seconds), "--gpus", str(gpus),
+         "--device", device, "--no-video", "--quiet", "--overwrite"])
+    metrics = json.loads((out / "metrics.json").read_text())
+    return {"gpus": gpus, "seconds": seconds, "psnr": metrics["psnr"], "steps": metrics["steps"],
+            "ms": 1000.0 * metrics["train_seconds"] / max(metrics["steps"], 1), "wall": metrics["wall_seconds"]}
+
+
+def time_to(rows: list[dict], target: float) -> str:
+    """Seconds of training at which the PSNR line through two budgets crosses ``target``."""
+    rows = sorted(rows, key=lambda r: r["seconds"])
+    for a, b in zip(rows, rows[1:]):
+        if a["psnr"] < target <= b["psnr"]:
+            return f"{a['seconds'] + (target - a['psnr']) * (b['seconds'] - a['seconds']) / (b['psnr'] - a['psnr']):.1f}"
+    return f"{rows[0]['seconds']:g} or less" if rows and rows[0]["psnr"] >= target else "not reached"
+
+
+def training_table(rows: list[dict], target: float) -> str:
+    lines = ["| GPUs | seconds | PSNR | steps | ms/step | start-up | training | checkpoint | evaluation | wall |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        w = r["wall"]
+        lines.append(f"| {r['gpus']} | {r['seconds']:g} | {r['psnr']:.2f} | {r['steps']} | {r['ms']:.2f} "
+                     f"| {w['start_up']:.1f} | {w['training']:.1f} | {w['checkpoint']:.1f} | {w['evaluation']:.1f} "
+                     f"| {sum(w.values()):.1f} |")
+    for gpus in sorted({r["gpus"] for r in rows}):
+        lines.append(f"\n{gpus} GPU(s): {target:g} dB after {time_to([r for r in rows if r['gpus'] == gpus], target)} "
+                     f"s of training")
+    return "\n".join(lines)
+
+
+def write_scenes(folder: Path, count: int) -> Path:
+    """``count`` demo scenes of unequal size under ``folder`` (generated once); the glob of them."""
+    from ngp_warp.data.scene import write_demo_scene
+
+    for k in range(count):
+        scene = folder / f"scene{k:02d}"
+        if not scene.exists():
+            write_demo_scene(scene, width=48 + 48 * (k % 2), height=48 + 48 * (k % 2), n_train=12 + 12 * (k % 4),
+                             n_test=2, seed=k, supersample=1)
+    return folder / "scene*"
+
+
+def fit_many_table(pattern: Path, out: Path, gpus_list: list[int], steps: int, device: str) -> str:
+    lines = ["| GPUs | wall s | scenes per hour | against 1 rank | idle s per rank |", "|---:|---:|---:|---:|---|"]
+    base = None
+    for gpus in gpus_list:
+        run(["ngp-warp", "fit-many", str(pattern), "--out", str(out / f"gpus{gpus}"), "--steps", str(steps),
+             "--gpus", str(gpus), "--device", device, "--no-video", "--quiet", "--overwrite"])
+        summary = json.loads((out / f"gpus{gpus}" / "summary.json").read_text())
+        rate = summary["scenes_per_hour"]
+        base = rate if base is None else base
+        idle = ", ".join(f"{r['idle_seconds']:.1f}" for r in summary["per_rank"])
+        lines.append(f"| {gpus} | {summary['wall_seconds']:.1f} | {rate:.0f} | {rate / base:.2f}× | {idle} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scene", type=Path, required=True)
+    parser.add_argument("--gpus", default="1,2", help="comma-separated rank counts")
+    parser.add_argument("--seconds", default="8,15", help="comma-separated training budgets")
+    parser.add_argument("--target", type=float, default=35.0, help="the PSNR whose time is read off")
+    parser.add_argument("--fit-many", type=int, default=0, help="generated scenes for fit-many (0: skip)")
+    parser.add_argument("--fit-many-steps", type=int, default=3000)
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--out", type=Path, default=Path("bench_scaling"))
+    args = parser.parse_args()
+    gpus_list = [int(g) for g in args.gpus.split(",")]
+    rows = [train_row(args.scene, args.out / f"train-g{g}-s{s}", g, float(s), args.device)
+            for g in gpus_list for s in args.seconds.split(",")]
+    print(training_table(rows, args.target))
+    if args.fit_many:
+        pattern = write_scenes(args.out / "scenes", args.fit_many)
+        print(fit_many_table(pattern, args.out / "fit-many", gpus_list, args.fit_many_steps, args.device))
+    (args.out / "scaling.json").write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
