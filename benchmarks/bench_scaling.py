@@ -45,8 +45,11 @@ def time_to(rows: list[dict], target: float) -> str:
     rows = sorted(rows, key=lambda r: r["seconds"])
     for a, b in zip(rows, rows[1:]):
         if a["psnr"] < target <= b["psnr"]:
-            return f"{a['seconds'] + (target - a['psnr']) * (b['seconds'] - a['seconds']) / (b['psnr'] - a['psnr']):.1f}"
-    return f"{rows[0]['seconds']:g} or less" if rows and rows[0]["psnr"] >= target else "not reached"
+            seconds = a["seconds"] + (target - a["psnr"]) * (b["seconds"] - a["seconds"]) / (b["psnr"] - a["psnr"])
+            return f"reach {target:g} dB after {seconds:.1f} s of training"
+    if rows and rows[0]["psnr"] >= target:
+        return f"reach {target:g} dB within {rows[0]['seconds']:g} s of training"
+    return f"do not reach {target:g} dB within {rows[-1]['seconds']:g} s" if rows else "no runs"
 
 
 def training_table(rows: list[dict], target: float) -> str:
@@ -58,8 +61,7 @@ def training_table(rows: list[dict], target: float) -> str:
                      f"| {w['start_up']:.1f} | {w['training']:.1f} | {w['checkpoint']:.1f} | {w['evaluation']:.1f} "
                      f"| {sum(w.values()):.1f} |")
     for gpus in sorted({r["gpus"] for r in rows}):
-        lines.append(f"\n{gpus} GPU(s): {target:g} dB after {time_to([r for r in rows if r['gpus'] == gpus], target)} "
-                     f"s of training")
+        lines.append(f"\n{gpus} GPU(s) {time_to([r for r in rows if r['gpus'] == gpus], target)}")
     return "\n".join(lines)
 
 
@@ -106,7 +108,7 @@ def main() -> None:
     print(training_table(rows, args.target))
     if args.fit_many:
         pattern = write_scenes(args.out / "scenes", args.fit_many)
-        print(fit_many_table(pattern, args.out / "fit-many", gpus_list, args.fit_many_steps, args.device))
+        print("\n" + fit_many_table(pattern, args.out / "fit-many", gpus_list, args.fit_many_steps, args.device))
     (args.out / "scaling.json").write_text(json.dumps(rows, indent=1))
 
 
