@@ -12,7 +12,10 @@ import torch
 
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
-from ngp_warp.training.scene_defaults import choose_aabb_scale, choose_contraction, plain_backdrop, seen_aabb_scale
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.training.scene_defaults import (choose_aabb_scale, choose_contraction, plain_backdrop,
+                                             seen_aabb_scale, with_backdrop_alpha)
+from ngp_warp.training.trainer import Trainer
 from ngp_warp.data.scene_unbounded import environment_colours, render_unbounded_rays, write_unbounded_scene
 
 _spec = importlib.util.spec_from_file_location("capture_scenes",
@@ -94,3 +97,16 @@ def test_an_object_on_a_plain_backdrop_gets_the_box_its_cameras_see(demo, tmp_pa
     centre = (seen.aabb[:3] + seen.aabb[3:]) / 2
     half_view = 0.5 * white.train.width / white.train.intrinsics[:, 0]
     assert ((cameras - centre).norm(dim=-1) * half_view).median() <= (seen.aabb[3] - seen.aabb[0]) / 2
+
+
+def test_backdrop_alpha_trains_pure_white_as_transparent_when_asked(demo, tmp_path):
+    white = load_scene(capture_scenes.write_capture(demo, tmp_path / "white", "colmap"))
+    images = white.train.images
+    rgba = with_backdrop_alpha(images)
+    assert rgba.shape == (*images.shape[:3], 4) and torch.equal(rgba[..., :3], images)
+    backdrop = (images == 255).all(-1)
+    assert backdrop.any() and (~backdrop).any()
+    assert (rgba[..., 3][backdrop] == 0).all() and (rgba[..., 3][~backdrop] == 255).all()
+    small = {"steps": 1, "target_samples": 1 << 10, "grid_resolution": 16}
+    assert Trainer(white, TrainConfig(**small, backdrop_alpha=True), device="cpu").train_split.images.shape[-1] == 4
+    assert Trainer(white, TrainConfig(**small), device="cpu").train_split.images.shape[-1] == 3  # off by default

@@ -62,6 +62,9 @@ class TrainConfig:
                                         # (near the camera counts more), or "world" (t)
     near_gradient_distance: float = 0.0  # > 0: σ and colour gradients scaled by min(1, (t / this)²),
                                         # t from the camera in world units (Floaters No More)
+    backdrop_alpha: bool = False        # train opaque images of an object on white as if the white were
+                                        # transparent (alpha 0 where every channel is 255), over random
+                                        # backgrounds (an experiment: see docs/captures.md)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
     camera_lr: float = 1e-4             # its Adam learning rate (fox: instant-ngp's 1e-3 drifted 0.4°)
     field: FieldConfig = field(default_factory=FieldConfig)
@@ -98,6 +101,8 @@ class TrainConfig:
             raise ValueError(f"occupancy_decay must be in [0, 1), got {self.occupancy_decay!r}")
         if not 0.0 <= self.weight_average < 1.0:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
+        if type(self.backdrop_alpha) is not bool:
+            raise ValueError(f"backdrop_alpha must be true or false, got {self.backdrop_alpha!r}")
         if type(self.camera_refinement) is not bool:
             raise ValueError(f"camera_refinement must be true or false, got {self.camera_refinement!r}")
         if type(self.seed) is not int or not 0 <= self.seed < 2**63:

@@ -144,6 +144,13 @@ def plain_backdrop(images: torch.Tensor) -> bool:
     return float(close.float().mean()) >= _BACKDROP_SHARE
 
 
+def with_backdrop_alpha(images: torch.Tensor) -> torch.Tensor:
+    """[N, H, W, 4] uint8: opaque [N, H, W, 3] uint8 ``images`` with alpha 0 where every channel
+    is 255 (the backdrop), 255 elsewhere."""
+    backdrop = (images == 255).all(-1, keepdim=True)
+    return torch.cat([images, torch.where(backdrop, 0, 255).to(torch.uint8)], -1)
+
+
 def contraction_box(scene: Scene) -> torch.Tensor:
     """[6] float32 inner box of the contraction: the finest cascade's box, grown about its centre
     (keeping its proportions) until it holds every training camera."""

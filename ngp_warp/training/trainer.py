@@ -8,6 +8,7 @@ renderer (:mod:`ngp_warp.outputs.renderer`).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -28,7 +29,7 @@ from ngp_warp.training.model import RadianceModel
 from ngp_warp.ops.occupancy import OccupancyGrid
 from ngp_warp.ops.ray_loss import ray_loss
 from ngp_warp.outputs.renderer import render_view
-from ngp_warp.training.scene_defaults import edge_pixels
+from ngp_warp.training.scene_defaults import edge_pixels, with_backdrop_alpha
 from ngp_warp.training.train_step import RayCount, StepPhases, TrainingField, backward
 
 READOUT_EVERY = 10  # steps between progress readouts (each reads the loss: one host sync)
@@ -54,7 +55,10 @@ class Trainer:
         self.scene = scene = scene.with_aabb_scale(cfg.aabb_scale)
         check_fits(cfg, scene, self.device)  # SettingsTooLarge before allocating
         torch.manual_seed(cfg.seed)
-        self.train_split: Split = scene.train.to(self.device)
+        train = scene.train
+        if cfg.backdrop_alpha and train.images.shape[-1] == 3:  # trained over random backgrounds
+            train = dataclasses.replace(train, images=with_backdrop_alpha(train.images))
+        self.train_split: Split = train.to(self.device)
         self.model = RadianceModel.for_scene(
             scene, cfg.field, self.device, grid_resolution=cfg.grid_resolution,
             steps_per_diagonal=cfg.steps_per_diagonal, cone_angle=cfg.cone_angle, contraction=cfg.contraction,
