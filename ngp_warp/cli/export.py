@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 from ngp_warp.cli.common import CHECKPOINT, UserError, output_file, resolve_device
-from ngp_warp.outputs.export import default_threshold, extract_mesh, training_points
 
 def add_export_parser(subparsers, positive_int, positive_float):
     """The ``export`` sub-command (``positive_int``/``positive_float``: the CLI's argparse
@@ -26,6 +25,7 @@ def add_export_parser(subparsers, positive_int, positive_float):
 
 def cmd_export(args) -> None:
     from ngp_warp.training.checkpoint import load_trainer
+    from ngp_warp.outputs.export import default_threshold, extract_mesh, training_points  # Warp's geometry: export only
     from ngp_warp.outputs.ply import write_ply
 
     if not args.mesh and not args.points:
