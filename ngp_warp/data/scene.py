@@ -4,7 +4,6 @@ RGBA on a transparent background, plus ``scene.json`` describing how it was made
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -13,7 +12,7 @@ import torch
 
 from ngp_warp import _wp
 from ngp_warp.kernels import scene as K
-from ngp_warp.data.scene_folder import check_positive_ints, check_views, write_scene_folder, write_split
+from ngp_warp.data.scene_folder import check_positive_ints, check_views, write_rendered_scene
 
 CAMERA_ANGLE_X = 0.6911112070083618  # the Blender scenes' horizontal field of view, radians
 CAMERA_RADIUS = 4.0
@@ -129,13 +128,9 @@ def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100
     def render(c2w: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
         return render_demo_views(c2w, intrinsics, width, height, supersample)
 
-    def fill(tmp: Path) -> None:
-        for split, c2w in zip(("train", "test"), demo_cameras(n_train, n_test, seed)):
-            write_split(tmp, split, c2w, width, height, CAMERA_ANGLE_X, render, {})
-        description = _scene_description(width, height, n_train, n_test, seed, supersample)
-        (tmp / "scene.json").write_text(json.dumps(description, indent=2))
-
-    return write_scene_folder(out_dir, overwrite, "the demo scene", fill)
+    return write_rendered_scene(out_dir, overwrite, "the demo scene", demo_cameras(n_train, n_test, seed), width,
+                                height, CAMERA_ANGLE_X, render, {},
+                                _scene_description(width, height, n_train, n_test, seed, supersample))
 
 
 # ---- the demo scene in a textured room (for structure from motion) --------------------------

@@ -88,3 +88,18 @@ def write_scene_folder(out_dir: str | Path, overwrite: bool, what: str, fill: Ca
             except OSError:
                 break
     return out
+
+
+def write_rendered_scene(out_dir: str | Path, overwrite: bool, what: str, cameras: tuple[np.ndarray, np.ndarray],
+                         width: int, height: int, camera_angle_x: float, render: RenderViews, keys: dict,
+                         description: dict) -> Path:
+    """Write a generated scene as a NeRF-synthetic folder at ``out_dir``: the train and test
+    ``cameras`` ([V, 3, 4] float64 each) rendered by ``render`` (:func:`write_split`, with the
+    extra scene ``keys``) and ``scene.json`` holding ``description``, through
+    :func:`write_scene_folder` (``overwrite`` and ``what`` as there)."""
+    def fill(tmp: Path) -> None:
+        for split, c2w in zip(("train", "test"), cameras):
+            write_split(tmp, split, c2w, width, height, camera_angle_x, render, keys)
+        (tmp / "scene.json").write_text(json.dumps(description, indent=2))
+
+    return write_scene_folder(out_dir, overwrite, what, fill)

@@ -10,7 +10,6 @@ The transforms files carry two scene keys beside ``camera_angle_x``: ``"contract
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from ngp_warp import _wp
 from ngp_warp.kernels import scene as objects
 from ngp_warp.kernels import scene_unbounded as K
 from ngp_warp.data.scene import look_at
-from ngp_warp.data.scene_folder import check_positive_ints, check_views, write_scene_folder, write_split
+from ngp_warp.data.scene_folder import check_positive_ints, check_views, write_rendered_scene
 
 CAMERA_ANGLE_X = 0.9  # horizontal field of view, radians
 RING_RADIUS = 3.6  # cameras circle the centre at this distance (jittered by 5 % in training)
@@ -169,10 +168,6 @@ def write_unbounded_scene(out_dir: str | Path, *, width: int = 100, height: int 
     def render(c2w: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
         return render_unbounded_views(c2w, intrinsics, width, height, supersample)
 
-    def fill(tmp: Path) -> None:
-        for split, c2w in zip(("train", "test"), unbounded_cameras(n_train, n_test, seed)):
-            write_split(tmp, split, c2w, width, height, CAMERA_ANGLE_X, render, scene_keys())
-        description = _description(width, height, n_train, n_test, seed, supersample)
-        (tmp / "scene.json").write_text(json.dumps(description, indent=2))
-
-    return write_scene_folder(out_dir, overwrite, "the unbounded scene", fill)
+    return write_rendered_scene(out_dir, overwrite, "the unbounded scene", unbounded_cameras(n_train, n_test, seed),
+                                width, height, CAMERA_ANGLE_X, render, scene_keys(),
+                                _description(width, height, n_train, n_test, seed, supersample))
