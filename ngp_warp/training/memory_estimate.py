@@ -23,12 +23,13 @@ from dataclasses import dataclass
 
 import torch
 
+from ngp_warp.ops.field import FieldConfig
+
 GRID_BYTES_PER_CELL = 9
 TABLE_COPIES = 5
 MARCH_BYTES_PER_SAMPLE = 40
 FIELD_BYTES_PER_SAMPLE = {True: 360, False: 1500}  # prune (no-grad density pass) or not
 MAX_SAMPLES_PER_CALL = (2**31 - 1) // 16  # the hash grid indexes [N, levels] items with int32
-DEFAULT_SAMPLE_WIDTH = 2 * 16 + 3 * 64 + 16 + (16 + 16) + 3  # floats a sample holds at FieldConfig's defaults
 
 
 class SettingsTooLarge(ValueError):
@@ -95,7 +96,7 @@ def estimate(config, scene) -> MemoryEstimate:
         cone = config.cone_angle or 0.0
         per_ray = samples_per_ray(finest * 2 ** (levels - 1), step, cone, finest)
     samples = int(config.initial_rays * per_ray)
-    widths = max(1.0, sample_width(f) / DEFAULT_SAMPLE_WIDTH)
+    widths = max(1.0, sample_width(f) / sample_width(FieldConfig()))  # FIELD_BYTES_PER_SAMPLE is at the defaults
     per_sample = MARCH_BYTES_PER_SAMPLE + FIELD_BYTES_PER_SAMPLE[bool(config.prune)] * widths
     mlps = mlp_parameters(f, len(scene.train.names)) * 4 * TABLE_COPIES
     return MemoryEstimate(cells, cells * GRID_BYTES_PER_CELL, table, mlps, samples, int(samples * per_sample))
