@@ -82,7 +82,7 @@ def _parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_render)
 
     common(add_export_parser(sub, positive(int), positive(float)))
-    common(add_view_parser(sub, positive(int)))
+    common(add_view_parser(sub))
     add_process_parser(sub)
 
     add_fit_many_parser(sub, training, common, folder_name, positive(int))

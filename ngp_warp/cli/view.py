@@ -12,9 +12,8 @@ from ngp_warp.cli.common import (CHECKPOINT, MAX_DOWNSCALE, UserError, new_train
                                  train_config)
 
 
-def add_view_parser(subparsers, positive_int):
-    """The ``view`` sub-command (``positive_int``: the CLI's argparse type); returns its parser,
-    for the CLI's shared ``--device``/``--quiet``."""
+def add_view_parser(subparsers):
+    """The ``view`` sub-command; returns its parser, for the CLI's shared ``--device``/``--quiet``."""
     v = subparsers.add_parser("view", help="web viewer (viser) of a trained output folder, or of a scene trained live")
     v.add_argument("target", metavar="RUN_OR_SCENE", help="a trained output folder, or a scene folder to train live")
     v.add_argument("--host", default="127.0.0.1",
@@ -25,11 +24,11 @@ def add_view_parser(subparsers, positive_int):
     v.add_argument("--moving-resolution", type=positive(int, high=MAX_SIDE),
                    help="longest side while the camera moves (default a quarter of --resolution)")
     v.add_argument("--scene", help="a run's scene folder, if it moved since training")
-    v.add_argument("--steps", type=positive_int, help="live training: steps (default 20000)")
+    v.add_argument("--steps", type=positive(int), help="live training: steps (default 20000)")
     v.add_argument("--seconds", type=positive(float), help="live training: wall-clock budget in seconds")
     v.add_argument("--downscale", type=positive(int, high=MAX_DOWNSCALE), default=1, help="live training: shrink images by this factor")
     v.add_argument("--seed", type=seed_number, default=0)
-    v.add_argument("--target-samples", type=positive_int, help="live training: samples per batch")
+    v.add_argument("--target-samples", type=positive(int), help="live training: samples per batch")
     v.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="live training: any setting")
     v.set_defaults(func=cmd_view)
     return v
@@ -54,6 +53,10 @@ def load_target(args, device: str):
     return new_trainer(load_scene(target, downscale=args.downscale), config, device), True
 
 
+def port_in_use(host: str, port: int) -> UserError:
+    return UserError(f"--port {port}: already in use on {host} (choose another --port, and forward that one)")
+
+
 def check_listen_address(host: str, port: int) -> None:
     """UserError (one line) unless a server can listen on ``host``:``port`` now: a host this
     machine has, a port nobody else holds (another port would break SSH forwarding)."""
@@ -67,8 +70,7 @@ def check_listen_address(host: str, port: int) -> None:
             probe.bind(address)
         except OSError as e:
             if e.errno == errno.EADDRINUSE:
-                raise UserError(f"--port {port}: already in use on {host} (choose another --port, and forward "
-                                f"that one)") from None
+                raise port_in_use(host, port) from None
             raise UserError(f"--host {host} --port {port}: cannot listen there ({e.strerror or e})") from None
 
 
@@ -91,8 +93,7 @@ def cmd_view(args) -> None:
         raise UserError(f"--port {args.port}: cannot listen on {args.host} ({e.strerror or e})") from None
     if viewer.server.get_port() != args.port:  # taken since the check: the server moved to another
         viewer.close()
-        raise UserError(f"--port {args.port}: already in use on {args.host} (choose another --port, and forward "
-                        f"that one)")
+        raise port_in_use(args.host, args.port)
     what = "training live" if live else f"step {trainer.step_count}"
     print(f"ngp-warp view: {args.target} ({what}) at {viewer.url}  (Ctrl-C to stop)", file=sys.stderr)
     print(viewer.url, flush=True)
