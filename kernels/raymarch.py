@@ -1,27 +1,29 @@
 """Ray marching through an occupancy grid, run twice: count, then fill.
 
-With fixed steps a ray's steps are split into segments of ``seg_steps`` steps, each marched by
-its own thread (the last one runs to the ray's end); with cone steps, or with a scene
-contraction, one thread marches a ray. The kernel is built from the helpers of
-:mod:`ngp_warp.kernels.raymarch_funcs` (the ray's interval, the step size, the cell lookup)
-and the walks below: through an occupied cell (:func:`take_cell`), over empty space
-(:func:`skip_empty`), and through contracted space (:func:`march_contracted`).
+A ray's steps t_k have a closed form in k (fixed, or cone steps: :class:`StepSchedule`), so its
+steps are split into segments of ``seg_steps`` steps, each marched by its own thread (the last
+one runs to the ray's end); with a scene contraction one thread marches a ray. The kernel is
+built from the helpers of :mod:`ngp_warp.kernels.raymarch_funcs` (the ray's interval, the
+steps, the cell lookup) and the walks below: through an occupied cell (:func:`take_cell`) and
+over empty space (:func:`march_segment`), and through contracted space
+(:func:`march_contracted`).
 Sampling carries no gradient, so there is no backward kernel here.
 """
 
 import warp as wp
 
 from ngp_warp.kernels.occupancy import box_center, box_half, cell_id, is_occupied
-from ngp_warp.kernels.raymarch_funcs import (_MAX_ITERS, _REMARCH, NO_CONTRACTION, MarchConfig, block_exit, contracted_point,
-                                             contracted_step_at, empty_mip, first_step_past, grid_cell,
-                                             march_start, mark_step, ray_span, reciprocal, step_at, write_sample)
+from ngp_warp.kernels.raymarch_funcs import (_MAX_ITERS, _REMARCH, NO_CONTRACTION, MarchConfig, StepSchedule, block_exit,
+                                             contracted_point, contracted_step_at, empty_mip, first_step_past,
+                                             grid_cell, march_start, mark_step, ray_span, ray_steps, reciprocal,
+                                             step_start, write_sample)
 
 wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
 def take_cell(
-    k: int, k_stop: int, t: float, t_s: float, dt: float, t1: float, cone: float,
+    k: int, k_stop: int, t: float, steps: StepSchedule, t1: float,
     n: int, cap: int, fill: int, masked: bool, mask: wp.uint64, k_first: int, base: int,
     r: int, o: wp.vec3, d: wp.vec3,
     ray_indices: wp.array(dtype=wp.int64),
@@ -30,44 +32,24 @@ def take_cell(
     positions: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
 ):
-    """Keep steps k .. k_stop − 1 (all in one occupied cell) while t < t1 and n < cap: the fill
-    writes them as samples base + n onwards, the count with ``masked`` sets their bits
+    """Keep steps k .. k_stop − 1 (all in one occupied cell; t = t_k) while t < t1 and n < cap:
+    the fill writes them as samples base + n onwards, the count with ``masked`` sets their bits
     k − k_first in ``mask``. Returns the next (k, t, n, mask)."""
     while k < k_stop and t < t1 and n < cap:
-        t_end = wp.min(t + dt, t1)
+        t_next = step_start(steps, k + 1)
         if fill != 0:
-            write_sample(base + n, r, o, d, t, t_end, ray_indices, t_starts, t_ends, positions, directions)
+            write_sample(base + n, r, o, d, t, wp.min(t_next, t1), ray_indices, t_starts, t_ends, positions, directions)
         elif masked:
             mask = mark_step(mask, k - k_first)
         n += 1
         k += 1
-        if cone > 0.0:
-            t = t + dt
-        else:
-            t = t_s + float(k) * dt
+        t = t_next
     return k, t, n, mask
 
 
 @wp.func
-def skip_empty(k: int, t: float, t_s: float, dt: float, inv_dt: float, t1: float, t_leave: float,
-               cfg: MarchConfig, iters: int):
-    """Jump from the empty step k at t to the first step whose midpoint lies past t_leave (the
-    exit of the empty block): fixed steps in one go, cone steps one at a time (counted in
-    iters). Returns the next (k, t, iters)."""
-    if cfg.cone > 0.0:
-        t = t + dt
-        while t < t1 and t + 0.5 * step_at(t, cfg.step, cfg.cone, cfg.max_step) < t_leave and iters < _MAX_ITERS:
-            t = t + step_at(t, cfg.step, cfg.cone, cfg.max_step)
-            iters += 1
-    else:
-        k = wp.max(k + 1, first_step_past(t_leave, t_s, inv_dt))
-        t = t_s + float(k) * dt
-    return k, t, iters
-
-
-@wp.func
 def replay_mask(
-    mask: wp.uint64, k: int, t_s: float, step: float, t1: float, cap: int, base: int,
+    mask: wp.uint64, k: int, steps: StepSchedule, t1: float, cap: int, base: int,
     r: int, o: wp.vec3, d: wp.vec3,
     ray_indices: wp.array(dtype=wp.int64),
     t_starts: wp.array(dtype=float),
@@ -80,8 +62,7 @@ def replay_mask(
     n = int(0)
     while mask != wp.uint64(0) and n < cap:
         if (mask & wp.uint64(1)) != wp.uint64(0):
-            t = t_s + float(k) * step
-            write_sample(base + n, r, o, d, t, wp.min(t + step, t1),
+            write_sample(base + n, r, o, d, step_start(steps, k), wp.min(step_start(steps, k + 1), t1),
                          ray_indices, t_starts, t_ends, positions, directions)
             n += 1
         mask = mask >> wp.uint64(1)
@@ -91,55 +72,44 @@ def replay_mask(
 
 @wp.func
 def march_segment(
-    k: int, k_end: int, t0: float, t1: float, cap: int, fill: int, masked: bool, base: int,
+    k: int, k_end: int, steps: StepSchedule, t1: float, cap: int, fill: int, masked: bool, base: int,
     r: int, o: wp.vec3, d: wp.vec3, c: wp.vec3, h: wp.vec3,
     bitfield: wp.array(dtype=wp.uint8),
     mips: wp.array(dtype=wp.uint8),
     cfg: MarchConfig,
-    seed: int,
     ray_indices: wp.array(dtype=wp.int64),
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
     positions: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
 ):
-    """March steps k .. k_end − 1 of ray r over [t0, t1] (see march_rays): keep the steps in
+    """March steps k .. k_end − 1 of ray r up to t1 (see march_rays): keep the steps in
     occupied cells, jump over empty blocks. Returns (samples kept, step mask of the count)."""
-    step = cfg.step
-    cone = cfg.cone
     res = cfg.res
-    dt = step_at(t0, step, cone, cfg.max_step)
-    t_s = march_start(t0, dt, cfg.stratified, seed, r)
-    t = t_s
-    if k > 0:
-        t = t_s + float(k) * dt
+    t = step_start(steps, k)
     inv_d = reciprocal(d)
     inv_h = reciprocal(h)
-    inv_dt = 1.0 / step
     k_first = k
     n = int(0)
     mask = wp.uint64(0)
     iters = int(0)
     while t < t1 and k < k_end and n < cap and iters < _MAX_ITERS:
         iters += 1
-        dt = step_at(t, step, cone, cfg.max_step)
-        t_end = wp.min(t + dt, t1)
+        t_end = wp.min(step_start(steps, k + 1), t1)
         level, ijk, lower, scale = grid_cell(o + d * (0.5 * (t + t_end)), c, h, inv_h, cfg.levels, res)
+        size = h * (2.0 * scale / float(res))
         if is_occupied(bitfield, cell_id(level, ijk, res)):
-            # fixed steps: every step whose midpoint lies before the cell's exit is in the cell
-            k_stop = k + 1
-            if cone == 0.0:
-                size = h * (2.0 * scale / float(res))
-                t_leave = block_exit(o, d, inv_d, lower, size, ijk, size)
-                k_stop = wp.min(wp.max(k + 1, first_step_past(t_leave, t_s, inv_dt)), k_end)
-            k, t, n, mask = take_cell(k, k_stop, t, t_s, dt, t1, cone, n, cap, fill, masked, mask, k_first, base,
+            # every step whose midpoint lies before the cell's exit is in the cell
+            t_leave = block_exit(o, d, inv_d, lower, size, ijk, size)
+            k_stop = wp.min(wp.max(k + 1, first_step_past(steps, t_leave)), k_end)
+            k, t, n, mask = take_cell(k, k_stop, t, steps, t1, n, cap, fill, masked, mask, k_first, base,
                                       r, o, d, ray_indices, t_starts, t_ends, positions, directions)
         else:
             mip = empty_mip(mips, level * cfg.mip_cells, ijk, res, cfg.n_mips)
-            size = h * (2.0 * scale / float(res))
             block = wp.vec3i((ijk[0] >> mip) << mip, (ijk[1] >> mip) << mip, (ijk[2] >> mip) << mip)
             t_leave = block_exit(o, d, inv_d, lower, size, block, size * float(1 << mip))
-            k, t, iters = skip_empty(k, t, t_s, dt, inv_dt, t1, t_leave, cfg, iters)
+            k = wp.max(k + 1, first_step_past(steps, t_leave))
+            t = step_start(steps, k)
     return n, mask
 
 
@@ -183,21 +153,22 @@ def march_contracted(
 
 # Per ray: [t0, t1] = [max(near, t_enter), min(far, t_exit)] of the outermost cascade box.
 # Fixed step: t_k = t_s + k·Δt, t_s = t0 + u·Δt (u ~ U[0,1) when stratified, else 0).
-# Cone: t_{k+1} = t_k + clamp(t_k·cone, step, max_step).
-# Sample k is the interval [t_k, min(t_k + Δt, t1)], kept when its midpoint's cell (finest
-# cascade containing it) is occupied. With fixed steps, the samples whose midpoints lie before
-# that cell's exit are kept with it (one cell lookup per cell). From an empty cell the march
-# jumps (DDA) to the first t_k whose midpoint lies past the exit of the largest empty mip block
-# holding the cell (the cell itself when its mip-1 block is marked). At most max_per_ray samples
-# per ray.
+# Cone: t_{k+1} = t_k + clamp(t_k·cone, step, max_step), in closed form (ray_steps):
+#   t_k = t_s + k·step (k < k_cone), t_cone·(1 + cone)^(k − k_cone) (k < k_max),
+#   t_max + (k − k_max)·max_step.
+# Sample k is the interval [t_k, min(t_{k+1}, t1)], kept when its midpoint's cell (finest
+# cascade containing it) is occupied; the samples whose midpoints lie before that cell's exit
+# are kept with it (one cell lookup per cell). From an empty cell the march jumps (DDA) to the
+# first t_k whose midpoint lies past the exit of the largest empty mip block holding the cell
+# (the cell itself when its mip-1 block is marked). At most max_per_ray samples per ray.
 # Item i marches segment j = i mod n_seg of ray r = i div n_seg: steps k in [j·seg_steps,
-# (j+1)·seg_steps), the last segment to the ray's end (n_seg = 1 with cone steps). Since t_k
-# depends on k alone, a segment's march joins the whole ray's march at its first occupied cell.
+# (j+1)·seg_steps), the last segment to the ray's end. Since t_k depends on k alone, a
+# segment's march joins the whole ray's march at its first occupied cell.
 # fill = 0: seg_counts[i] = samples of the segment (at most max_per_ray); seg_offsets[0] = 0.
 # Between the passes seg_offsets[1:] becomes the inclusive prefix sum of the (capped) counts.
 # fill = 1: the segment's first seg_offsets[i+1] − seg_offsets[i] samples go to seg_offsets[i]
 # onwards, and ray_offsets[r] = seg_offsets[r·n_seg] (ray_offsets[n_rays] = seg_offsets[-1]).
-# Step masks (fixed steps, when the host passes step_masks): the count pass also stores bit
+# Step masks (when the host passes step_masks): the count pass also stores bit
 # k − j·seg_steps of step_masks[i] for every kept step k, and the fill pass writes the samples
 # from those bits instead of marching again; a segment with a kept step past bit 63 stores
 # _REMARCH and is marched again (the last segment of a ray longer than planned).
@@ -264,12 +235,11 @@ def march_rays(
         n = march_contracted(t0, t1, cap, fill, base, r, o, d, c, h, bitfield, cfg, seed,
                              ray_indices, t_starts, t_ends, positions, directions)
     elif live and masked and fill != 0 and mask != _REMARCH:
-        t_s = march_start(t0, cfg.step, cfg.stratified, seed, r)
-        n = replay_mask(mask, k, t_s, cfg.step, t1, cap, base, r, o, d,
+        n = replay_mask(mask, k, ray_steps(t0, cfg, seed, r), t1, cap, base, r, o, d,
                         ray_indices, t_starts, t_ends, positions, directions)
     elif live:
-        n, mask = march_segment(k, k_end, t0, t1, cap, fill, masked, base, r, o, d, c, h, bitfield, mips, cfg, seed,
-                                ray_indices, t_starts, t_ends, positions, directions)
+        n, mask = march_segment(k, k_end, ray_steps(t0, cfg, seed, r), t1, cap, fill, masked, base, r, o, d, c, h,
+                                bitfield, mips, cfg, ray_indices, t_starts, t_ends, positions, directions)
     if fill == 0:
         seg_counts[i] = n
         if masked:

@@ -1,6 +1,6 @@
 """The march's building blocks (see :mod:`ngp_warp.kernels.raymarch`): its settings, the ray's
 interval (:func:`ray_span`), the step size (:func:`step_at`, :func:`contracted_step_at`), the
-cell lookup (:func:`grid_cell`), the DDA exits of cells and empty blocks, and the sample writer.
+cell lookup (:func:`grid_cell`), the steps in closed form (:class:`StepSchedule`), the DDA exits of cells and empty blocks, and the sample writer.
 
 With a scene contraction (``MarchConfig.contraction`` ≥ 0) the march runs in world space but
 the grid lives in contracted space: a world point p is normalised by the inner box,
@@ -159,11 +159,85 @@ def block_exit(o: wp.vec3, d: wp.vec3, inv_d: wp.vec3, lower: wp.vec3, cell_size
     return cell_exit(o, d, inv_d, box_lo, extent)
 
 
+@wp.struct
+class StepSchedule:
+    """One ray's steps in closed form, t_k for any k (see :func:`step_start`): fixed steps up to
+    k_cone, then growing by the factor 1 + cone up to k_max, then fixed steps of max_step
+    (k_cone = k_max = _MAX_ITERS without a cone)."""
+
+    t_s: float
+    step: float
+    growth: float
+    max_step: float
+    k_cone: int
+    t_cone: float
+    k_max: int
+    t_max: float
+
+
 @wp.func
-def first_step_past(t_leave: float, t_s: float, inv_dt: float) -> int:
-    """Fixed steps t_k = t_s + k·Δt: the first k whose midpoint t_k + Δt/2 reaches t_leave,
-    ⌈(t_leave − t_s)/Δt − 1/2⌉ (at most _MAX_ITERS)."""
-    return int(wp.min(wp.ceil((t_leave - t_s) * inv_dt - 0.5), float(_MAX_ITERS)))
+def ray_steps(t0: float, cfg: MarchConfig, seed: int, r: int) -> StepSchedule:
+    """Ray r's step schedule from t0 (jittered by march_start). With a cone, step k is fixed
+    while t_k·cone ≤ step (k < k_cone), t_k·cone while below max_step (k < k_max), else
+    max_step: the recurrence t_{k+1} = t_k + clip(t_k·cone, step, max_step) in closed form."""
+    sched = StepSchedule()
+    sched.step = cfg.step
+    sched.max_step = cfg.max_step
+    sched.t_s = march_start(t0, step_at(t0, cfg.step, cfg.cone, cfg.max_step), cfg.stratified, seed, r)
+    sched.k_cone = _MAX_ITERS
+    sched.k_max = _MAX_ITERS
+    if cfg.cone > 0.0:
+        sched.growth = wp.log(1.0 + cfg.cone)
+        t_fixed = cfg.step / cfg.cone  # the cone step reaches the fixed step here
+        k_cone = int(0)
+        if sched.t_s <= t_fixed:
+            k_cone = int(wp.min(wp.floor((t_fixed - sched.t_s) / cfg.step) + 1.0, float(_MAX_ITERS)))
+        sched.k_cone = k_cone
+        sched.t_cone = sched.t_s + float(k_cone) * cfg.step
+        t_capped = cfg.max_step / cfg.cone  # the cone step reaches max_step here
+        growing = float(0.0)
+        if sched.t_cone < t_capped:
+            growing = wp.ceil(wp.log(t_capped / sched.t_cone) / sched.growth)
+        sched.k_max = k_cone + int(wp.min(growing, float(_MAX_ITERS - k_cone)))
+        sched.t_max = sched.t_cone * wp.exp(float(sched.k_max - k_cone) * sched.growth)
+    return sched
+
+
+@wp.func
+def step_start(s: StepSchedule, k: int) -> float:
+    """t_k: t_s + k·step, then t_cone·(1 + cone)^(k − k_cone), then t_max + (k − k_max)·max_step."""
+    if k < s.k_cone:
+        return s.t_s + float(k) * s.step
+    if k < s.k_max:
+        return s.t_cone * wp.exp(float(k - s.k_cone) * s.growth)
+    return s.t_max + float(k - s.k_max) * s.max_step
+
+
+@wp.func
+def step_mid(s: StepSchedule, k: int) -> float:
+    """The midpoint (t_k + t_{k+1}) / 2 of step k."""
+    return 0.5 * (step_start(s, k) + step_start(s, k + 1))
+
+
+@wp.func
+def first_step_past(s: StepSchedule, t_leave: float) -> int:
+    """The first k whose midpoint reaches t_leave (at most _MAX_ITERS): among the fixed first
+    steps ⌈(t_leave − t_s)/step − 1/2⌉; past them the log of the growth or the max_step
+    count, corrected by one either way against :func:`step_mid` (float rounding)."""
+    k = int(wp.min(wp.ceil((t_leave - s.t_s) / s.step - 0.5), float(_MAX_ITERS)))
+    if k < s.k_cone:
+        return k
+    if s.k_max > s.k_cone and t_leave <= step_mid(s, s.k_max - 1):
+        ratio = t_leave / (s.t_cone * 0.5 * (1.0 + wp.exp(s.growth)))
+        k = s.k_cone + wp.max(int(wp.ceil(wp.log(wp.max(ratio, 1.0e-30)) / s.growth)), 0)
+        k = wp.min(k, s.k_max - 1)
+    else:
+        k = s.k_max + wp.max(int(wp.min(wp.ceil((t_leave - s.t_max) / s.max_step - 0.5), float(_MAX_ITERS))), 0)
+    if k > s.k_cone and step_mid(s, k - 1) >= t_leave:
+        k -= 1
+    elif step_mid(s, k) < t_leave:
+        k += 1
+    return k
 
 
 @wp.func

@@ -201,9 +201,11 @@ def test_capacity_pads_or_cuts_without_reading_the_count(monkeypatch, cone_angle
 
 
 @pytest.mark.parametrize("levels", [1, 3])
-def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels):
+@pytest.mark.parametrize("cone", [{}, {"cone_angle": 1 / 64, "max_step": 0.12}])
+def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels, cone):
     """Short segments (several threads per ray, as on the GPU) give exactly the samples of one
-    thread per ray, with jitter and caps, and for non-unit directions whose rays outlast the
+    thread per ray, with fixed and with cone steps (all three of the cone's phases: fixed,
+    growing, max_step), with jitter and caps, and for non-unit directions whose rays outlast the
     step estimate (the last segment takes the rest). Segments of up to 64 steps fill from the
     count pass's step masks; a last segment past bit 63 is marched again."""
     grid = random_grid(levels)
@@ -212,20 +214,25 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels):
     calls = [dict(step_size=0.0173, near=0.05), dict(step_size=0.02, stratified=True),
              dict(step_size=0.02, max_samples_per_ray=9), dict(step_size=0.02, max_samples=3000)]
     for kw in calls:
+        kw = {**kw, **cone}
         results = []
         for schedule in (raymarch.MarchSchedule(10**9, 1), raymarch.MarchSchedule(7, 40), raymarch.MarchSchedule(40, 40)):
             monkeypatch.setitem(raymarch.SCHEDULES, "cpu", schedule)
-            n_seg, seg_steps = raymarch._segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"], 0.0)
+            n_seg, seg_steps = raymarch._segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"],
+                                                  kw.get("cone_angle", 0.0), kw.get("max_step", 1e10))
             assert (n_seg, seg_steps > 64) == (1, True) or (n_seg > 1 and seg_steps <= 64)  # masks in the split runs
             torch.manual_seed(3)
             results.append(ray_marching(rays_o, rays_d, grid, MarchOptions(**kw)))
         one = results[0]
         assert one.n_samples > 1000
-        if "max_samples_per_ray" not in kw:  # some last segments keep a step past their mask's bit 63
+        if "max_samples_per_ray" not in kw and not cone:  # some last segments keep a step past their mask's bit 63
             s = 2.0 ** (levels - 1)
             t0 = raymarch_ref.ray_box(rays_o, rays_d, [-s] * 3, [s] * 3)[0].clamp(min=kw.get("near", 0.0))
             k = (one.t_starts.double() - t0[one.ray_indices]) / kw["step_size"]
             assert k.max() > (n_seg - 1) * seg_steps + 64
+        if cone and levels == 3:  # every phase of the cone's steps is marched
+            dt = (one.t_ends - one.t_starts).double()
+            assert dt.min() < 0.0201 and ((dt > 0.021) & (dt < 0.11)).any() and dt.max() > 0.1199
         for split in results[1:]:
             for name in ("ray_offsets", "ray_indices", "t_starts", "t_ends", "positions", "directions"):
                 assert torch.equal(getattr(one, name), getattr(split, name)), (kw, name)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ngp_warp._reference import contraction as contraction_ref
@@ -22,6 +24,23 @@ def ray_box(rays_o, rays_d, lo, hi):
     return t_in, t_out
 
 
+def step_starts(t0: torch.Tensor, k: int, step: float, cone_angle: float, max_step: float) -> torch.Tensor:
+    """t_k of t_{k+1} = t_k + clip(t_k·cone_angle, step, max_step) from t0 ([N] float64), in
+    closed form as the kernel: t0 + k·step while t_k·cone_angle ≤ step (the first k_cone steps),
+    then t_cone·(1 + cone_angle)^(k − k_cone) while below max_step (up to k_max), then
+    t_max + (k − k_max)·max_step."""
+    if cone_angle == 0:
+        return t0 + k * step
+    k_cone = torch.where(t0 <= step / cone_angle, torch.floor((step / cone_angle - t0) / step) + 1, 0.0)
+    t_cone = t0 + k_cone * step
+    growth = math.log1p(cone_angle)
+    growing = torch.ceil(torch.log(max_step / cone_angle / t_cone) / growth).clamp(min=0.0)
+    t_max = t_cone * torch.exp(growing * growth)
+    k_max = k_cone + growing
+    return torch.where(k < k_cone, t0 + k * step,
+                       torch.where(k < k_max, t_cone * torch.exp((k - k_cone) * growth), t_max + (k - k_max) * max_step))
+
+
 def ray_marching(rays_o, rays_d, aabb, occupied: torch.Tensor, *, near=0.0, far=1e10, step=0.01,
               cone_angle=0.0, max_step=1e10):
     """Dense sampler: every step t_k in [t0, t1] of each ray, whether or not its cell is occupied.
@@ -40,13 +59,13 @@ def ray_marching(rays_o, rays_d, aabb, occupied: torch.Tensor, *, near=0.0, far=
     t = t0.clone()
     active = (t0 < t1) & (d.abs().sum(-1) > 0)
     while active.any():
-        dt = torch.full_like(t, step) if cone_angle == 0 else (t * cone_angle).clamp(step, max_step)
+        t_next = step_starts(t0, k + 1, step, cone_angle, max_step)
         idx = active.nonzero()[:, 0]
         rays.append(idx)
         starts.append(t[idx])
-        ends.append(torch.minimum(t + dt, t1)[idx])
+        ends.append(torch.minimum(t_next, t1)[idx])
         k += 1
-        t = t0 + k * step if cone_angle == 0 else t + dt
+        t = t_next
         active &= t < t1
     ray = torch.cat(rays) if rays else torch.zeros(0, dtype=torch.long)
     t_start = torch.cat(starts) if starts else torch.zeros(0, dtype=f64)

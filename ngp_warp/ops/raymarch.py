@@ -24,9 +24,9 @@ contracted length :math:`s` (``step_size``, in contracted units) unless the cone
 :math:`C(x)` at its midpoint is occupied (one lookup per step, no DDA). The samples stay in
 world space; the field contracts them.
 Samples are produced by count → prefix sum → fill; the only host synchronisation reads the
-total sample count to size the outputs. With fixed steps several threads march one ray, each
-over a segment of its steps (:class:`MarchSchedule`); the samples do not depend on the split.
-Segments of at most 64 fixed steps record their kept steps as a bit mask in the count, from
+total sample count to size the outputs. Several threads march one ray, each over a segment of
+its steps (:class:`MarchSchedule`; cone steps too, whose t_k has a closed form in k); the samples
+do not depend on the split. Segments of at most 64 steps record their kept steps as a bit mask in the count, from
 which the fill writes the samples without marching again.
 """
 
@@ -64,16 +64,31 @@ class MarchSchedule:
 SCHEDULES = {"cpu": MarchSchedule(512, 8), "cuda": MarchSchedule(32, 128)}
 
 
+def steps_over(t_a: float, t_b: float, step: float, cone_angle: float, max_step: float) -> float:
+    """The steps from t_a to t_b ≥ t_a (not rounded) of t_{k+1} = t_k + clip(t_k·cone_angle,
+    step, max_step): fixed steps up to step/cone_angle, steps growing by 1 + cone_angle up to
+    max_step/cone_angle, then steps of max_step."""
+    if cone_angle == 0:
+        return (t_b - t_a) / step
+    fixed_end, growing_end = step / cone_angle, max_step / cone_angle
+    n = max(min(t_b, fixed_end) - t_a, 0.0) / step
+    lo, hi = max(t_a, fixed_end), min(t_b, growing_end)
+    if hi > lo:
+        n += math.log(hi / lo) / math.log1p(cone_angle)
+    return n + max(t_b - max(t_a, growing_end), 0.0) / max_step
+
+
 def _segments(schedule: MarchSchedule, grid: OccupancyGrid, near: float, far: float, step: float,
-              cone_angle: float) -> tuple[int, int]:
-    """(segments per ray, steps per segment). A fixed-step ray inside the coarsest cascade box
-    takes at most min(far − near, box diagonal) / step + 1 steps when |d| = 1 (the last segment
-    takes any remainder); cone steps and contracted grids are marched by one thread per ray."""
-    if cone_angle > 0 or grid.contraction is not None:
+              cone_angle: float, max_step: float) -> tuple[int, int]:
+    """(segments per ray, steps per segment). A ray inside the coarsest cascade box spans at most
+    min(far − near, box diagonal) when |d| = 1, and takes the most steps when that span starts at
+    near (steps only grow with t): :func:`steps_over` + 1 (the last segment takes any remainder).
+    Contracted grids are marched by one thread per ray."""
+    if grid.contraction is not None:
         return 1, _NO_CAP
     lo, hi = grid.aabb_host[:3], grid.aabb_host[3:]
     diagonal = math.dist(lo, hi) * 2 ** (grid.levels - 1)
-    steps = min(far - near, diagonal) / step + 1
+    steps = steps_over(near, near + min(far - near, diagonal), step, cone_angle, max_step) + 1
     n_seg = int(min(max(steps / schedule.segment_steps, 1), schedule.max_segments))
     return n_seg, math.ceil(steps / n_seg)
 
@@ -296,7 +311,8 @@ def ray_marching(
     dev = rays_o.device
     n_rays = rays_o.shape[0]
     device = _wp.device_of(rays_o)
-    n_seg, seg_steps = _segments(SCHEDULES["cpu" if device == "cpu" else "cuda"], grid, near, far, step, cone_angle)
+    n_seg, seg_steps = _segments(SCHEDULES["cpu" if device == "cpu" else "cuda"], grid, near, far, step, cone_angle,
+                                 max_step)
     config = _march_config(grid.resolution, grid.levels, grid.n_mips, grid.mip_cells, near, far, step,
                            cone_angle, max_step, cap, int(march.stratified), n_seg, seg_steps, *_contraction(grid))
     seed = host_seed() if march.stratified else 0
@@ -305,8 +321,8 @@ def ray_marching(
     seg_ints = torch.empty(2 * n_items + 1, dtype=torch.int32, device=dev)  # one allocation for both
     seg_counts, seg_offsets = seg_ints[:n_items], seg_ints[n_items:]
     offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=dev)
-    # Short fixed-step segments keep their kept steps as bit masks, so the fill need not march again.
-    masks = torch.empty(n_items, dtype=torch.int64, device=dev) if cone_angle == 0 and seg_steps <= 64 else None
+    # Short segments keep their kept steps as bit masks, so the fill need not march again.
+    masks = torch.empty(n_items, dtype=torch.int64, device=dev) if seg_steps <= 64 else None
     n_samples = 0
     if n_rays > 0:
         _wp.launch(K.march_rays, n_items, [0, *common, seg_counts, seg_offsets, None, *[None] * 5, masks], device)
