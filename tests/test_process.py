@@ -14,6 +14,7 @@ pytest.importorskip("imageio_ffmpeg")
 
 import imageio.v3 as iio  # noqa: E402
 
+from ngp_warp.data import fold_check  # noqa: E402
 from ngp_warp.data import process as P  # noqa: E402
 from ngp_warp.cli.process import add_process_parser  # noqa: E402
 from ngp_warp.data import scene as demo  # noqa: E402
@@ -42,11 +43,22 @@ def demo_photos(tmp_path_factory):
     return folder, c2w
 
 
-def test_dense_sift_and_the_global_mapper_pose_the_demo_scene(demo_photos, tmp_path):
+def test_dense_sift_and_the_global_mapper_pose_the_demo_scene(demo_photos, tmp_path, monkeypatch):
+    """The demo scene's 40 views are posed within 1°, and the check against their own matches
+    passes; the same matches flag the known poses once half of them is folded onto the other."""
     photos, c2w = demo_photos
+    read = []
+    database_inliers = fold_check.database_inliers
+    monkeypatch.setattr(fold_check, "database_inliers", lambda *a: read.append(database_inliers(*a)) or read[-1])
     report = P.process(photos, tmp_path / "scene", P.ProcessConfig(sift="dense", mapper="global", device="cpu",
                                                                   show_progress=False))
     assert report.registered == N_VIEWS and report.sift_device == "cpu"
+    assert report.mapper == "global" and report.contradicted == [] and len(read) == 1
+    known = {f"{i:03d}.png": -m[:, 2] for i, m in enumerate(c2w)}  # OpenGL cameras look along -z
+    assert len(read[0]) > N_VIEWS and fold_check.contradicted_images(known, read[0]) == []
+    turn = np.diag([-1.0, -1.0, 1.0])  # the views of the scene's back (x < 0) posed as its front
+    folded = {name: turn @ axis if c2w[int(name[:3]), 0, 3] < 0 else axis for name, axis in known.items()}
+    assert len(fold_check.contradicted_images(folded, read[0])) >= 2
     meta = json.loads((tmp_path / "scene" / "transforms.json").read_text())
     index = [int(f["file_path"].split("/")[-1][:3]) for f in meta["frames"]]
     rotation_error, centre_error, _ = P.pose_errors(np.array([f["transform_matrix"] for f in meta["frames"]]),
@@ -215,3 +227,18 @@ def test_the_ngp_warp_command_reports_bad_input_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("ngp-warp: error: ") and "Traceback" not in err[0], err
     assert not (tmp_path / "scene").exists() and _leftovers(tmp_path) == []
+
+
+def test_a_contradicted_model_is_reported_in_plain_words(tmp_path, monkeypatch, capsys):
+    def folded_process(source, scene, config):
+        return P.ProcessReport(scene=tmp_path / "scene", registered=40, total=40, mean_reprojection_error=0.6,
+                               matcher="exhaustive", sift_device="cpu", mapper="incremental",
+                               contradicted=["017.png", "025.png"], seconds={"total": 1.0})
+
+    monkeypatch.setattr("ngp_warp.cli.process.process", folded_process)
+    assert main(["process", str(tmp_path), "--out", str(tmp_path / "scene"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "incremental mapping" in out and "the global mapper's model contradicted its own matches" in out
+    warning = out.splitlines()[-1]
+    assert warning.startswith("warning: the poses of 2 image(s) contradict their own matches (017.png, 025.png)")
+    assert "folded by a symmetry" in warning

@@ -46,6 +46,14 @@ def cmd_process(args) -> None:
     report = process(args.input, args.out, config)
     print(f"registered {report.registered} of {report.total} images, mean reprojection error "
           f"{report.mean_reprojection_error:.3f} px ({config.sift} SIFT on {report.sift_device}, {report.matcher} "
-          f"matching, {config.mapper} mapping, "
+          f"matching, {report.mapper} mapping, "
           f"{report.seconds['total']:.1f} s)")
     print(f"wrote {report.scene / 'transforms.json'}, {report.scene / 'sparse' / '0'}/, {report.scene / 'images'}/")
+    if report.mapper != config.mapper:
+        print(f"the {config.mapper} mapper's model contradicted its own matches; the {report.mapper} mapper's is kept")
+    if report.contradicted:
+        shown = ", ".join(report.contradicted[:6]) + (", ..." if len(report.contradicted) > 6 else "")
+        print(f"warning: the poses of {len(report.contradicted)} image(s) contradict their own matches ({shown}): "
+              f"each shares the most matches with a view posed on the other side of the subject, so the model "
+              f"is probably folded by a symmetry of the subject; check the cameras with 'ngp-warp view {report.scene}' "
+              f"and add views of what tells the sides apart")

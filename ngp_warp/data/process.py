@@ -5,7 +5,9 @@ Stages, each with a progress bar: frames (a video only: the sharpest of each str
 :mod:`ngp_warp.data.video`) -> SIFT features (dense, on the CPU, or COLMAP's standard ones, on the
 GPU when pycolmap has CUDA) -> matching (sequential for a video, whose frames overlap their
 neighbours; exhaustive for a photo set of up to :data:`EXHAUSTIVE_MAX` images) -> global (or
-incremental) mapping. SCENE then holds ``images/``,
+incremental) mapping, checked against the images' own matches (a model folded by the subject's
+symmetry is mapped again by the other mapper, and reported if that does not help:
+:mod:`ngp_warp.data.fold_check`). SCENE then holds ``images/``,
 ``sparse/0`` (the COLMAP model, binary) and ``transforms.json`` (instant-ngp format, the scene
 normalised by :func:`ngp_warp.data.colmap.colmap_to_transforms`).
 
@@ -32,11 +34,15 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 EXHAUSTIVE_MAX = 300  # photo sets up to this size match every pair; larger ones match by name order
 SEQUENTIAL_OVERLAP = 10  # sequential matching: each image against its next 10 (and 2^k-th) neighbours
 MIN_REGISTERED = 3
-MAPPING_SEED = 0  # fixed RANSAC and mapper seed: the same input gives the same poses
+MAPPING_SEED = 0  # fixed RANSAC and mapper seed: the same matches give the same poses
 CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "OPENCV_FISHEYE")
 SIFT_KINDS = ("dense", "standard")  # dense: more features, affine shapes, domain-size pooling (CPU SIFT)
 MAPPERS = ("global", "incremental")  # COLMAP's global mapper (GLOMAP) or its incremental one
 DENSE_SIFT_FEATURES = 16384
+# Verified matches a pair needs (COLMAP's default: 15). On 40 of lego's views over white, the
+# weak false matches between its front and back folded the global mapper's model in 10 of 14 runs
+# at 15, in none of 10 at 30 and of 5 at 40; true neighbours share 100-450.
+VERIFY_MIN_INLIERS = 30
 
 
 @dataclass
@@ -56,7 +62,8 @@ class ProcessConfig:
         ``standard`` (COLMAP's defaults). mapper: ``global`` or ``incremental``. On 40 of
         lego's views over white (2 CPU cores, benchmarks/RESULTS.md) standard + incremental
         registered 26 at 0.21° median error, dense + incremental 39 but folded by the model's
-        symmetry (13.7°), standard + global 40 folded (5.9°), dense + global 40 at 0.26°; on
+        symmetry (13.7°), standard + global 40 folded (5.9°), dense + global 40 at 0.26°
+        (in 4 of 14 runs with COLMAP's 15 verified matches a pair, in 5 of 5 with 30); on
         fox's 50 photos dense + global 50 at 0.60° (0.7° at most), as the standard incremental
         run's 0.71°; on the demo room both 40 of 40 at 0.03°.
     overwrite: replace an existing SCENE.
@@ -90,7 +97,9 @@ class ProcessConfig:
 @dataclass
 class ProcessReport:
     """What ``process`` made: ``registered`` of ``total`` images posed, the model's mean
-    reprojection error in pixels, the matcher and SIFT device used, wall-clock seconds per stage."""
+    reprojection error in pixels, the matcher, SIFT device and mapper used, wall-clock seconds
+    per stage, and the images whose poses contradict their own matches
+    (:func:`ngp_warp.data.fold_check.contradicted_images`; empty for a sound model)."""
 
     scene: Path
     registered: int
@@ -98,6 +107,8 @@ class ProcessReport:
     mean_reprojection_error: float
     matcher: str
     sift_device: str
+    mapper: str
+    contradicted: list
     seconds: dict
 
 
@@ -219,8 +230,10 @@ def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: st
     else:
         pairs, run = sequential_pairs(n), pycolmap.match_sequential
         options = pycolmap.SequentialPairingOptions(overlap=SEQUENTIAL_OVERLAP, quadratic_overlap=True)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.min_num_inliers = VERIFY_MIN_INLIERS
     _run_stage(f"matching ({matcher})", pairs, lambda token: run(
-        database, pairing_options=options, device=device, cancellation_token=token),
+        database, pairing_options=options, verification_options=verification, device=device, cancellation_token=token),
         (database, "two_view_geometries"), show)
     return database, "cuda" if sift_device == pycolmap.Device.cuda else "cpu"
 
@@ -240,14 +253,15 @@ def _mapping(work: Path, database: Path, images_dir: Path, n_images: int, show: 
     def run(token):
         if mapper == "global":  # one solve: its bar moves once, at the end
             options = pycolmap.GlobalPipelineOptions(random_seed=MAPPING_SEED)
-            return pycolmap.global_mapping(database, images_dir, work / "models", options=options)
+            return pycolmap.global_mapping(database, images_dir, models_dir, options=options)
         options = pycolmap.IncrementalPipelineOptions(random_seed=MAPPING_SEED)
-        return pycolmap.incremental_mapping(database, images_dir, work / "models", options=options,
+        return pycolmap.incremental_mapping(database, images_dir, models_dir, options=options,
                                             initial_image_pair_callback=on_pair,
                                             next_image_callback=on_image, cancellation_token=token)
 
-    (work / "models").mkdir()
-    models = _run_stage("mapping", n_images, run, lambda: registered[0], show)
+    models_dir = work / f"models-{mapper}"
+    models_dir.mkdir()
+    models = _run_stage(f"mapping ({mapper})", n_images, run, lambda: registered[0], show)
     if not models:
         raise DataError(f"structure from motion failed: no two of the {n_images} images match well enough "
                         f"to start a model (more overlap between views, more texture, less blur)")
@@ -263,6 +277,28 @@ def _mapping(work: Path, database: Path, images_dir: Path, n_images: int, show: 
         raise DataError(f"structure from motion registered only {model.num_reg_images()} of {n_images} images "
                         f"(at least {MIN_REGISTERED} are needed)")
     return model
+
+
+def _sound_mapping(work: Path, database: Path, images_dir: Path, n_images: int, config: ProcessConfig):
+    """(model, mapper, contradicted images): the model of ``config.mapper``; when some of its
+    images contradict their own matches (a model folded by the subject's symmetry), the other
+    mapper's too, keeping the one with fewer contradicted images (the first on a tie). On lego's
+    views a fold of one mapper was once undone by the other and once shared by it; another seed
+    of the same mapper gave the same fold."""
+    from ngp_warp.data.fold_check import contradicted_images, database_inliers, model_axes
+
+    def mapped(mapper):
+        model = _mapping(work, database, images_dir, n_images, config.show_progress, mapper)
+        return model, mapper, contradicted_images(model_axes(model), database_inliers(database, model))
+
+    first = mapped(config.mapper)
+    if not first[2]:
+        return first
+    try:
+        second = mapped(next(m for m in MAPPERS if m != config.mapper))
+    except DataError:
+        return first
+    return second if len(second[2]) < len(first[2]) else first
 
 
 def _pick_matcher(config: ProcessConfig, is_video: bool, n_images: int) -> str:
@@ -287,7 +323,8 @@ def _build(source: Path, tmp: Path, config: ProcessConfig, report: dict) -> None
     database, report["sift_device"] = _features_and_matches(work, tmp / "images", sizes, matcher, config)
     report["seconds"]["features+matching"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    model = _mapping(work, database, tmp / "images", len(sizes), config.show_progress, config.mapper)
+    model, report["mapper"], report["contradicted"] = _sound_mapping(work, database, tmp / "images", len(sizes),
+                                                                      config)
     report["seconds"]["mapping"] = time.perf_counter() - clock
     sparse = tmp / "sparse" / "0"
     sparse.mkdir(parents=True)
