@@ -1,14 +1,20 @@
 """ngp-warp fit-many: 3 tiny scenes over 2 gloo ranks (torchrun through --gpus), a rerun that
-skips them, an interrupted scene resumed, and bad manifests as one line."""
+skips them, an interrupted scene resumed, two nodes on one host (one of them killed), and bad
+manifests as one line."""
 
+import contextlib
 import json
+import os
+import signal
 import socket
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
-from ngp_warp.cli import main
+from ngp_warp.cli import fit_many, main
 from ngp_warp.cli.fit_many import finished_metrics, read_manifest, FitManyError
 from ngp_warp.data.scene import write_demo_scene
 
@@ -98,6 +104,126 @@ def test_two_nodes_on_one_host_share_the_scenes_through_the_rendezvous(manifest,
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ranks"] == 2 and sum(r["scenes"] for r in summary["per_rank"]) == 3
     assert all(r["status"] == "trained" and r["steps"] == 3 for r in summary["scenes"])
+
+
+def _kill_tree(pid: int) -> None:
+    """SIGKILL process ``pid`` and every descendant (torchrun starts its workers in sessions of
+    their own, so its process group is not enough); Linux's /proc."""
+    children = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    tree, todo = [], [pid]
+    while todo:
+        tree.append(todo.pop())
+        todo.extend(children.get(tree[-1], []))
+    for p in tree:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(p, signal.SIGKILL)
+
+
+@pytest.mark.slow
+def test_a_node_that_dies_leaves_finished_scenes_and_a_rerun_fits_the_rest(tmp_path):
+    """Two single-process nodes share four scenes; once a scene is finished one node is killed
+    (SIGKILL, its whole process group). The other stops; every scene finished so far keeps a
+    complete metrics.json, and the same command run again (one process) fits only the rest."""
+    root = tmp_path / "many"
+    for i, name in enumerate(["chair", "mug", "lamp", "cup"]):
+        write_demo_scene(root / "scenes" / name, width=12, height=12, n_train=4, n_test=1, seed=i, supersample=1)
+    (root / "manifest.txt").write_text("scenes/*\n")
+    out = tmp_path / "out"
+    args = ["fit-many", str(root / "manifest.txt"), "--out", str(out), "--steps", "40", *TINY]
+    node = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc-per-node", "1",
+            "--rdzv-backend", "c10d", "--rdzv-endpoint", f"127.0.0.1:{_free_port()}", "--rdzv-id", "fit-many-kill",
+            "-m", "ngp_warp.cli", *args]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}  # two nodes on one host's cores
+    nodes = [subprocess.Popen(node, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                              start_new_session=True) for _ in range(2)]
+    try:
+        start = time.monotonic()
+        while not any(finished_metrics(d) for d in out.glob("*") if d.is_dir()):
+            assert time.monotonic() - start < 240 and all(p.poll() is None for p in nodes), "no scene finished"
+            time.sleep(0.1)
+        _kill_tree(nodes[1].pid)  # the node: torchrun's agent and its worker
+        with contextlib.suppress(subprocess.TimeoutExpired):  # torchrun's agent may wait for the dead one's
+            nodes[0].wait(timeout=90)
+    finally:
+        for p in nodes:
+            _kill_tree(p.pid)
+            p.wait()
+    finished = {d.name: (d / "metrics.json").stat().st_mtime_ns for d in out.glob("*") if finished_metrics(d)}
+    assert 1 <= len(finished) <= 3
+    assert main(args) == 0
+    rows = {r["scene"]: r for r in json.loads((out / "summary.json").read_text())["scenes"]}
+    assert sorted(rows) == ["chair", "cup", "lamp", "mug"] and all(r["steps"] == 40 for r in rows.values())
+    assert {n for n, r in rows.items() if r["status"] == "skipped"} == set(finished)
+    assert all((out / n / "metrics.json").stat().st_mtime_ns == stamp for n, stamp in finished.items())
+
+
+class FakeStore:
+    """The store calls _all_ranks makes; ``alive`` ranks raise their counter at every read."""
+
+    def __init__(self, alive=()):
+        self.values, self.alive = {}, set(alive)
+
+    def set(self, key, value):
+        self.values[key] = value.encode() if isinstance(value, str) else value
+
+    def check(self, keys):
+        return all(k in self.values for k in keys)
+
+    def get(self, key):
+        return self.values[key]
+
+    def add(self, key, amount):
+        rank = int(key.rsplit("/", 1)[1])
+        self.values[key] = self.values.get(key, 0) + amount + (rank in self.alive)
+        return self.values[key]
+
+
+def test_rank_zero_collects_the_ranks_that_post_and_names_the_silent_one_lost(monkeypatch):
+    import torch.distributed as dist
+
+    store = FakeStore(alive={1})
+    store.set(fit_many.RESULT_KEY + "1", json.dumps([[{"scene": "mug", "rank": 1}], 3.0]))
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "get_rank", lambda: 0)
+    monkeypatch.setattr(dist, "get_world_size", lambda: 3)
+    monkeypatch.setattr(dist.distributed_c10d, "_get_default_store", lambda: store)
+    monkeypatch.setattr(fit_many, "LOST_AFTER_SECONDS", 0.5)
+    start = time.monotonic()
+    rows, busy, lost = fit_many._all_ranks([{"scene": "chair", "rank": 0}], 2.0)
+    assert [r["scene"] for r in rows] == ["chair", "mug"] and busy == [2.0, 3.0, None] and lost == [2]
+    assert 0.5 < time.monotonic() - start < 5
+    store = FakeStore(alive={2})  # rank 2 still beating: waited for, not lost, until it posts
+    monkeypatch.setattr(dist.distributed_c10d, "_get_default_store", lambda: store)
+    store.set(fit_many.RESULT_KEY + "1", json.dumps([[], 1.0]))
+    reads = []
+
+    def add(key, amount, add=store.add):
+        reads.append(key)
+        if len(reads) == 10:  # after 10 reads (2 s, 4 times the limit) rank 2 posts
+            store.set(fit_many.RESULT_KEY + "2", json.dumps([[{"scene": "lamp", "rank": 2}], 4.0]))
+        return add(key, amount)
+
+    monkeypatch.setattr(store, "add", add)
+    rows, busy, lost = fit_many._all_ranks([], 2.0)
+    assert [r["scene"] for r in rows] == ["lamp"] and busy == [2.0, 1.0, 4.0] and lost == []
+
+
+def test_a_lost_store_is_one_line(monkeypatch):
+    import torch.distributed as dist
+
+    class GoneStore:
+        def add(self, key, amount):
+            raise dist.DistNetworkError("Broken pipe")
+
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist.distributed_c10d, "_get_default_store", lambda: GoneStore())
+    with pytest.raises(FitManyError, match=r"^lost the rendezvous store \(Broken pipe: its node died\?\); the scenes "
+                                           r"finished are kept, and the same command run again fits the rest$"):
+        next(fit_many.claimed_scenes(3))
 
 
 def test_incomplete_metrics_are_not_finished(tmp_path):

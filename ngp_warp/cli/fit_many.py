@@ -17,6 +17,7 @@ import argparse
 import glob
 import json
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -25,6 +26,10 @@ from ngp_warp.data.data_error import DataError
 
 SUMMARY = "summary.json"
 QUEUE_KEY = "ngp-warp/fit-many/next-scene"
+RESULT_KEY = "ngp-warp/fit-many/result/"  # + rank: that rank's rows and busy seconds, as JSON
+ALIVE_KEY = "ngp-warp/fit-many/alive/"  # + rank: a counter the rank raises every HEARTBEAT_SECONDS
+HEARTBEAT_SECONDS = 2.0
+LOST_AFTER_SECONDS = 60.0  # rank 0 takes a rank whose counter stood still this long for dead
 METRICS_KEYS = ("psnr", "steps", "train_seconds", "n_test_images", "per_image")
 
 
@@ -145,19 +150,81 @@ def claimed_scenes(n_scenes: int):
         yield from range(n_scenes)
         return
     store = dist.distributed_c10d._get_default_store()  # torchrun's rendezvous store, shared by the ranks
-    while (index := store.add(QUEUE_KEY, 1) - 1) < n_scenes:
+    while (index := _stored(store.add, QUEUE_KEY, 1) - 1) < n_scenes:
         yield index
 
 
-def _all_ranks(rows: list[dict], busy: float) -> tuple[list[dict], list[float]]:
-    """Every rank's rows and busy seconds, on every rank (gathered through the process group, if any)."""
+def _stored(call, *args):
+    """``call(*args)``, a call of the process group's store; a lost store (the node holding it
+    died) as one line."""
+    try:
+        return call(*args)
+    except RuntimeError as e:  # torch.distributed's store errors (DistNetworkError, DistStoreError, ...)
+        raise FitManyError(f"lost the rendezvous store ({str(e).splitlines()[0] if str(e) else type(e).__name__}: "
+                           f"its node died?); the scenes finished are kept, and the same command run again fits "
+                           f"the rest") from None
+
+
+class Heartbeat:
+    """In its ``with`` block, a thread raises this rank's counter in the process group's store
+    every :data:`HEARTBEAT_SECONDS` (nothing outside a process group), so that rank 0 can tell a
+    rank still training a long scene from one whose node died."""
+
+    def __init__(self):
+        import torch.distributed as dist
+
+        self._store = None
+        if dist.is_available() and dist.is_initialized():
+            self._store = dist.distributed_c10d._get_default_store()
+            self._key = f"{ALIVE_KEY}{dist.get_rank()}"
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, daemon=True)
+
+    def _beat(self) -> None:
+        while not self._stop.wait(HEARTBEAT_SECONDS):
+            try:
+                self._store.add(self._key, 1)
+            except RuntimeError:  # the store is gone: the next claim of a scene says so
+                return
+
+    def __enter__(self) -> Heartbeat:
+        if self._store is not None:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+
+def _all_ranks(rows: list[dict], busy: float) -> tuple[list[dict], list[float | None], list[int]]:
+    """(rows, busy seconds per rank, lost ranks). Outside a process group: this process's own.
+    In one, every rank posts its rows to the store; rank 0 collects them, waiting for each rank
+    until it posts or its heartbeat stands still for :data:`LOST_AFTER_SECONDS` (its node died:
+    lost, busy None); other ranks return their own rows at once."""
     import torch.distributed as dist
 
     if not (dist.is_available() and dist.is_initialized()):
-        return rows, [busy]
-    gathered = [None] * dist.get_world_size()
-    dist.all_gather_object(gathered, (rows, busy))
-    return [row for part, _ in gathered for row in part], [b for _, b in gathered]
+        return rows, [busy], []
+    store, rank, world = dist.distributed_c10d._get_default_store(), dist.get_rank(), dist.get_world_size()
+    _stored(store.set, f"{RESULT_KEY}{rank}", json.dumps([rows, busy]))
+    if rank != 0:
+        return rows, [busy], []
+    posted, lost, beats = {}, [], {}
+    while len(posted) + len(lost) < world:
+        for k in sorted(set(range(world)) - set(posted) - set(lost)):
+            if _stored(store.check, [f"{RESULT_KEY}{k}"]):
+                posted[k] = json.loads(_stored(store.get, f"{RESULT_KEY}{k}"))
+                continue
+            beat, now = _stored(store.add, f"{ALIVE_KEY}{k}", 0), time.monotonic()  # read without waiting
+            if beats.get(k, (None,))[0] != beat:
+                beats[k] = (beat, now)
+            elif now - beats[k][1] > LOST_AFTER_SECONDS:
+                lost.append(k)
+        time.sleep(0.2)
+    return ([row for k in sorted(posted) for row in posted[k][0]],
+            [posted[k][1] if k in posted else None for k in range(world)], sorted(lost))
 
 
 def cmd_fit_many(args) -> None:
@@ -177,23 +244,31 @@ def cmd_fit_many(args) -> None:
     rank, world = rank_and_size()
     args.quiet = args.quiet or rank != 0  # one rank's progress bars on the terminal
     start = time.perf_counter()
-    rows = [{**fit_scene(scenes[i], out / scenes[i].name, args), "rank": rank} for i in claimed_scenes(len(scenes))]
+    with Heartbeat():
+        rows = [{**fit_scene(scenes[i], out / scenes[i].name, args), "rank": rank}
+                for i in claimed_scenes(len(scenes))]
     busy = time.perf_counter() - start
-    rows, busy_per_rank = _all_ranks(rows, busy)
+    rows, busy_per_rank, lost = _all_ranks(rows, busy)
     rows = sorted(rows, key=lambda r: [s.name for s in scenes].index(r["scene"]))
     wall = time.perf_counter() - start
     fitted = sum(r["status"] in ("trained", "resumed") for r in rows)
     failed = [r["scene"] for r in rows if r["status"] == "failed"]
     if is_main_rank():
         per_rank = [{"rank": k, "scenes": sum(r["rank"] == k for r in rows), "busy_seconds": b,
-                     "idle_seconds": wall - b} for k, b in enumerate(busy_per_rank)]
+                     "idle_seconds": None if b is None else wall - b, "lost": k in lost}
+                    for k, b in enumerate(busy_per_rank)]
         summary = {"ranks": world, "wall_seconds": wall, "scenes_per_hour": 3600.0 * fitted / wall,
                    "per_rank": per_rank, "scenes": rows}
         atomic_write_text(out / SUMMARY, json.dumps(summary, indent=2))
         print(summary_table(rows))
-        idle = ", ".join(f"rank {r['rank']} {r['idle_seconds']:.1f} s" for r in per_rank)
+        idle = ", ".join(f"rank {r['rank']} " + ("lost" if r["lost"] else f"{r['idle_seconds']:.1f} s")
+                         for r in per_rank)
         print(f"{len(rows)} scenes ({fitted} fitted, {len(rows) - fitted - len(failed)} skipped as finished, "
               f"{len(failed)} failed) on {world} rank(s) in {wall:.1f} s (idle: {idle}); wrote {out / SUMMARY}")
+    if lost:
+        raise FitManyError(f"rank(s) {', '.join(map(str, lost))} stopped answering (no heartbeat for "
+                           f"{LOST_AFTER_SECONDS:.0f} s: a node died?); the scenes finished are kept, and the same "
+                           f"command run again fits the rest")
     if failed:
         raise FitManyError(f"{len(failed)} of {len(rows)} scenes failed: {', '.join(failed)} (see {out / SUMMARY})")
 

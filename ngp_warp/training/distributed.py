@@ -32,7 +32,7 @@ import torch.distributed as dist
 
 from ngp_warp.training.trainer import READOUT_EVERY, Trainer
 
-FIT_MANY_TIMEOUT = datetime.timedelta(days=30)  # a rank waits at the end for the slowest one
+FIT_MANY_TIMEOUT = datetime.timedelta(days=30)  # no store or group operation of fit-many expires during a long scene
 
 
 def rank_and_size() -> tuple[int, int]:
