@@ -24,6 +24,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
+from capture_scenes import composite, synthetic_views
 from ngp_warp.data import scene as demo
 from ngp_warp.data.process import ProcessConfig, pose_errors, process, require_pycolmap
 
@@ -48,14 +49,11 @@ def _fox_poses(fox: Path) -> dict[str, np.ndarray]:
 def _lego_photos(lego: Path, folder: Path, n_views: int) -> dict[str, np.ndarray]:
     """The first ``n_views`` training views of NeRF-synthetic ``lego``, composited on white,
     into ``folder``; {file name: [4, 4] float64 camera-to-world}."""
-    meta = json.loads((lego / "transforms_train.json").read_text())
     folder.mkdir(parents=True)
     poses = {}
-    for i, frame in enumerate(meta["frames"][:n_views]):
-        rgba = iio.imread(lego / (frame["file_path"] + ".png")).astype(np.float32) / 255
-        rgb = rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:])
-        iio.imwrite(folder / f"{i:03d}.png", (rgb * 255 + 0.5).clip(0, 255).astype(np.uint8))
-        poses[f"{i:03d}.png"] = np.array(frame["transform_matrix"], dtype=np.float64)
+    for i, (image, c2w, _) in enumerate(synthetic_views(lego)[:n_views]):  # the train split comes first
+        iio.imwrite(folder / f"{i:03d}.png", composite(iio.imread(image), np.ones(3)))
+        poses[f"{i:03d}.png"] = c2w
     return poses
 
 

@@ -1,6 +1,7 @@
 """The march's building blocks (see :mod:`ngp_warp.kernels.raymarch`): its settings, the ray's
 interval (:func:`ray_span`), the step size (:func:`step_at`, :func:`contracted_step_at`), the
-cell lookup (:func:`grid_cell`), the steps in closed form (:class:`StepSchedule`), the DDA exits of cells and empty blocks, and the sample writer.
+cell lookup (:func:`grid_cell`), the steps in closed form (:class:`StepSchedule`), the DDA exits
+of cells and empty blocks, and the sample writer.
 
 With a scene contraction (``MarchConfig.contraction`` ≥ 0) the march runs in world space but
 the grid lives in contracted space: a world point p is normalised by the inner box,

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 FOLD_ANGLE = 60.0  # degrees between an image's optical axis and its most-matched image's
-MIN_INLIERS = 15  # verified matches that make a pair count (COLMAP's own minimum for a pair)
+MIN_INLIERS = 15  # verified matches that make a pair count: COLMAP's default minimum (process verifies
+                  # with data.process.VERIFY_MIN_INLIERS, so every pair it stores passes)
 
 
 def contradicted_images(axes: dict[str, np.ndarray], inliers: dict[tuple[str, str], int],
