@@ -1,20 +1,22 @@
 """One GPU against several: data-parallel training and fit-many, through the commands a user runs.
 
     python benchmarks/bench_scaling.py --scene ../shared/data/lego_half --gpus 1,2 --seconds 8,15 \
-        --target 35 [--fit-many 8 --fit-many-steps 3000] [--device cuda] [--out bench_scaling]
+        --target 35 [--variant split=target_samples=131072 ...] [--fit-many 8 --fit-many-steps 3000] \
+        [--device cuda] [--out bench_scaling]
 
 Prints two tables:
 
 1. ``ngp-warp train SCENE --seconds S --gpus G --no-video`` for every G and S: PSNR, steps,
    ms per step, the wall clock by phase (metrics.json's ``wall_seconds``: start-up, training,
    checkpoint, evaluation), and per G the seconds of training to reach ``--target`` dB, read off
-   the line through the two budgets that bracket it (or "not reached").
+   the line through the two budgets that bracket it (or "not reached"). Each ``--variant
+   LABEL=KEY=VALUE[,KEY=VALUE]`` adds rows of every G above 1 with those ``--set`` settings.
 2. ``ngp-warp fit-many`` over ``--fit-many`` generated demo scenes of unequal size (12 to 48 views
    at 48 to 96 pixels) for every G: wall seconds, scenes per hour, each rank's idle seconds
    (summary.json), and scenes per hour against one rank.
 
 With ``--device cpu`` the ranks are CPU processes joined by gloo (a smoke run of the same paths).
-The all-reduce's share of a step is not instrumented yet.
+The all-reduce's share of a step: ``profile_data_parallel.py``.
 """
 
 from __future__ import annotations
@@ -32,11 +34,13 @@ def run(command: list[str]) -> None:
         raise SystemExit(f"failed ({done.returncode}): {' '.join(command)}\n{done.stderr[-2000:]}")
 
 
-def train_row(scene: Path, out: Path, gpus: int, seconds: float, device: str) -> dict:
+def train_row(scene: Path, out: Path, gpus: int, seconds: float, device: str, label: str = "",
+              settings: tuple[str, ...] = ()) -> dict:
+    sets = [arg for setting in settings for arg in ("--set", setting)]
     run(["ngp-warp", "train", str(scene), "--out", str(out), "--seconds", str(seconds), "--gpus", str(gpus),
-         "--device", device, "--no-video", "--quiet", "--overwrite"])
+         "--device", device, "--no-video", "--quiet", "--overwrite", *sets])
     metrics = json.loads((out / "metrics.json").read_text())
-    return {"gpus": gpus, "seconds": seconds, "psnr": metrics["psnr"], "steps": metrics["steps"],
+    return {"gpus": gpus, "label": label, "seconds": seconds, "psnr": metrics["psnr"], "steps": metrics["steps"],
             "ms": 1000.0 * metrics["train_seconds"] / max(metrics["steps"], 1), "wall": metrics["wall_seconds"]}
 
 
@@ -53,15 +57,16 @@ def time_to(rows: list[dict], target: float) -> str:
 
 
 def training_table(rows: list[dict], target: float) -> str:
-    lines = ["| GPUs | seconds | PSNR | steps | ms/step | start-up | training | checkpoint | evaluation | wall |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| GPUs | variant | seconds | PSNR | steps | ms/step | start-up | training | checkpoint | evaluation | wall |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         w = r["wall"]
-        lines.append(f"| {r['gpus']} | {r['seconds']:g} | {r['psnr']:.2f} | {r['steps']} | {r['ms']:.2f} "
+        lines.append(f"| {r['gpus']} | {r['label']} | {r['seconds']:g} | {r['psnr']:.2f} | {r['steps']} | {r['ms']:.2f} "
                      f"| {w['start_up']:.1f} | {w['training']:.1f} | {w['checkpoint']:.1f} | {w['evaluation']:.1f} "
                      f"| {sum(w.values()):.1f} |")
-    for gpus in sorted({r["gpus"] for r in rows}):
-        lines.append(f"\n{gpus} GPU(s) {time_to([r for r in rows if r['gpus'] == gpus], target)}")
+    for gpus, label in sorted({(r["gpus"], r["label"]) for r in rows}):
+        same = [r for r in rows if r["gpus"] == gpus and r["label"] == label]
+        lines.append(f"\n{gpus} GPU(s) {label}: {time_to(same, target)}")
     return "\n".join(lines)
 
 
@@ -95,17 +100,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scene", type=Path, required=True)
     parser.add_argument("--gpus", default="1,2", help="comma-separated rank counts")
-    parser.add_argument("--seconds", default="8,15", help="comma-separated training budgets")
+    parser.add_argument("--seconds", default="8,15", help="comma-separated training budgets ('': fit-many only)")
     parser.add_argument("--target", type=float, default=35.0, help="the PSNR whose time is read off")
+    parser.add_argument("--variant", action="append", default=[], metavar="LABEL=KEY=VALUE[,KEY=VALUE]",
+                        help="rows of every rank count above 1 with these settings")
     parser.add_argument("--fit-many", type=int, default=0, help="generated scenes for fit-many (0: skip)")
     parser.add_argument("--fit-many-steps", type=int, default=3000)
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--out", type=Path, default=Path("bench_scaling"))
     args = parser.parse_args()
     gpus_list = [int(g) for g in args.gpus.split(",")]
-    rows = [train_row(args.scene, args.out / f"train-g{g}-s{s}", g, float(s), args.device)
-            for g in gpus_list for s in args.seconds.split(",")]
-    print(training_table(rows, args.target))
+    variants = [("defaults", ())] + [(v.split("=", 1)[0], tuple(v.split("=", 1)[1].split(","))) for v in args.variant]
+    rows = [train_row(args.scene, args.out / f"train-g{g}-{label}-s{s}", g, float(s), args.device, label, sets)
+            for g in gpus_list for label, sets in (variants if g > 1 else variants[:1])
+            for s in args.seconds.split(",") if s]
+    if rows:
+        print(training_table(rows, args.target))
     if args.fit_many:
         pattern = write_scenes(args.out / "scenes", args.fit_many)
         print("\n" + fit_many_table(pattern, args.out / "fit-many", gpus_list, args.fit_many_steps, args.device))

@@ -135,9 +135,12 @@ class GradientReducer:
     :meth:`finish` (after every backward, on every rank, also without one) launches what the
     hooks did not, with zero gradients where a parameter got none; :meth:`wait` (before the
     optimizer reads them) waits for the reductions and copies the flat buffer back.
+
+    ``table_dtype`` bfloat16 reduces the table's gradient through a bfloat16 copy (half the
+    bytes on the wire; zeros stay zero, so the lazy table Adam still skips them).
     """
 
-    def __init__(self, field: torch.nn.Module):
+    def __init__(self, field: torch.nn.Module, table_dtype: torch.dtype = torch.float32):
         self.world_size = dist.get_world_size()
         self.buckets = [list(field.mlp_parameters()), list(field.encoding.parameters())]
         covered = {id(p) for bucket in self.buckets for p in bucket}
@@ -145,6 +148,8 @@ class GradientReducer:
             raise ValueError("the field has parameters outside its MLPs and hash table")
         device = self.buckets[0][0].device
         self._flat = torch.empty(sum(p.numel() for p in self.buckets[0]), dtype=torch.float32, device=device)
+        self.table_dtype = table_dtype
+        self._table_copy: torch.Tensor | None = None  # the table's gradient in table_dtype, when not float32
         self._ready: list[set[int]] = [set() for _ in self.buckets]
         self._launched = 0  # buckets launched this step, in order
         self._in_flight: list[tuple[int, dist.Work]] = []
@@ -163,13 +168,20 @@ class GradientReducer:
         for p in bucket:
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
-        if len(bucket) == 1:
-            tensor = bucket[0].grad
-        else:
+        if len(bucket) > 1:
             tensor = torch.cat([p.grad.reshape(-1) for p in bucket], out=self._flat)
+        elif self.table_dtype != torch.float32:
+            tensor = self._table_in_dtype(bucket[0].grad)
+        else:
+            tensor = bucket[0].grad
         tensor.mul_(1.0 / self.world_size)
         self._in_flight.append((index, dist.all_reduce(tensor, async_op=True)))
         self._launched += 1
+
+    def _table_in_dtype(self, grad: torch.Tensor) -> torch.Tensor:
+        if self._table_copy is None or self._table_copy.dtype != self.table_dtype:
+            self._table_copy = torch.empty(grad.shape, dtype=self.table_dtype, device=grad.device)
+        return self._table_copy.copy_(grad)
 
     def finish(self) -> None:
         """Launch the buckets backward did not complete (all of them after a step without
@@ -188,6 +200,8 @@ class GradientReducer:
             if len(bucket) > 1:
                 views = [v.view_as(p) for v, p in zip(self._flat.split([p.numel() for p in bucket]), bucket)]
                 torch._foreach_copy_([p.grad for p in bucket], views)
+            elif self.table_dtype != torch.float32:
+                bucket[0].grad.copy_(self._table_copy)
         self._in_flight.clear()
 
 
@@ -232,7 +246,7 @@ def make_data_parallel(trainer: Trainer) -> GradientReducer:
         raise ValueError("camera_refinement is not supported with data-parallel training (--gpus > 1)")
     rank, _ = rank_and_size()
     broadcast_state(trainer)
-    reducer = GradientReducer(trainer.field)
+    reducer = GradientReducer(trainer.field, getattr(torch, trainer.config.reduction_dtype))
     trainer.ray_stream = rank
     trainer.gradient_reduction = reducer.finish
     trainer.weights.before_update = reducer.wait

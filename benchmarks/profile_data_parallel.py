@@ -1,0 +1,116 @@
+"""Where a data-parallel step's time goes: the warm step with and without each gradient reduction.
+
+    torchrun --nproc-per-node 2 benchmarks/profile_data_parallel.py ../shared/data/lego_half [--set KEY=VALUE]
+
+Every rank trains the same scene (``make_data_parallel``, as ``ngp-warp train --gpus N``). After
+``--warmup`` steps, rank 0 prints one table row per variant of the reduction, each timed over
+``--timed`` steps of the same continuing run (so the sample count is the same):
+
+- ``both buckets``: what training does (the MLPs' flat buffer, then the hash table);
+- ``MLPs only``: the table's all-reduce left out (the models drift apart: timing only);
+- ``none``: no reduction (each rank trains alone, the ranks still share the machine);
+- ``table in bf16``: the table's gradient reduced in bfloat16 (``reduction_dtype=bfloat16``).
+
+Then the all-reduce of a tensor of the table's size alone (float32 and bfloat16), and a
+torch.profiler table of ``--profiled`` steps of ``both buckets`` on rank 0 (NCCL's kernels
+included), so the reduction's device time and its overlap with the step can be read off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from torch.profiler import ProfilerActivity, profile
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_train import scene_or_usage_error  # noqa: E402
+from ngp_warp.training.config import TrainConfig, apply_overrides  # noqa: E402
+from ngp_warp.training.distributed import GradientReducer, join, leave, make_data_parallel  # noqa: E402
+from ngp_warp.training.trainer import Trainer  # noqa: E402
+
+
+def timed_steps(trainer: Trainer, steps: int) -> float:
+    """Mean wall ms per step over ``steps`` steps, every rank synchronised before and after."""
+    torch.cuda.synchronize()
+    dist.barrier()
+    start = time.perf_counter()
+    for _ in range(steps):
+        trainer.step(0.2)
+    trainer.flush()
+    torch.cuda.synchronize()
+    dist.barrier()
+    return (time.perf_counter() - start) / steps * 1e3
+
+
+def skipping(reducer: GradientReducer, buckets: set[int]):
+    """The reducer's launch with the all-reduce of ``buckets`` left out (their gradients stay local)."""
+    launch = GradientReducer._launch.__get__(reducer)
+
+    def launch_or_skip(index: int) -> None:
+        if index in buckets:
+            reducer._launched += 1
+        else:
+            launch(index)
+    return launch_or_skip
+
+
+def all_reduce_ms(numel: int, dtype: torch.dtype, device: str, repeats: int = 50) -> float:
+    """Mean ms of one all-reduce of ``numel`` elements of ``dtype`` (random values)."""
+    t = torch.rand(numel, device=device).to(dtype)
+    for _ in range(5):
+        dist.all_reduce(t)
+    torch.cuda.synchronize()
+    start = time.perf_counter()
+    for _ in range(repeats):
+        dist.all_reduce(t)
+    torch.cuda.synchronize()
+    return (time.perf_counter() - start) / repeats * 1e3
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene")
+    ap.add_argument("--warmup", type=int, default=500)
+    ap.add_argument("--timed", type=int, default=300)
+    ap.add_argument("--profiled", type=int, default=20)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    device = join("cuda")
+    rank, world = dist.get_rank(), dist.get_world_size()
+    cfg = apply_overrides(TrainConfig(steps=10**9), args.set)
+    trainer = Trainer(scene_or_usage_error(ap, args.scene), cfg, device=device)
+    reducer = make_data_parallel(trainer)
+    for _ in range(args.warmup):
+        trainer.step(0.1)
+    rows = []
+    for name, skip, dtype in (("both buckets", set(), torch.float32), ("MLPs only", {1}, torch.float32),
+                              ("none", {0, 1}, torch.float32), ("table in bf16", set(), torch.bfloat16)):
+        reducer._launch = skipping(reducer, skip)
+        reducer.table_dtype = dtype
+        rows.append((name, timed_steps(trainer, args.timed)))
+    reducer._launch = skipping(reducer, set())
+    reducer.table_dtype = torch.float32
+    table = sum(p.numel() for p in reducer.buckets[1])
+    fp32, bf16 = (all_reduce_ms(table, d, device) for d in (torch.float32, torch.bfloat16))
+    if rank == 0:
+        print(f"{world} ranks, {torch.cuda.get_device_name()}; hash table {table} floats ({table * 4 / 2**20:.0f} MiB)")
+        print("| reduction | ms per step |\n| --- | ---: |")
+        for name, ms in rows:
+            print(f"| {name} | {ms:.3f} |")
+        print(f"all-reduce of the table's size alone: float32 {fp32:.3f} ms, bfloat16 {bf16:.3f} ms")
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for _ in range(args.profiled):
+            trainer.step(0.2)
+        torch.cuda.synchronize()
+    if rank == 0:
+        print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=25, max_name_column_width=60))
+    leave()
+
+
+if __name__ == "__main__":
+    main()

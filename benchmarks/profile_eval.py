@@ -1,0 +1,72 @@
+"""Where an evaluation's time goes: the test views of a trained run, phase by phase.
+
+    python benchmarks/profile_eval.py RUN_FOLDER [--device cuda] [--views 200]
+
+Loads the run's checkpoint and times, over its first ``--views`` test views (every phase adds to
+the one above it; the device is synchronised at the end of each pass, not per view):
+
+- ``render``: the renders alone (and the ground truth composited, the appearance fit included);
+- ``+ PSNR``: and each view's PSNR read on the host;
+- ``+ SSIM``: and SSIM;
+- ``+ images to host``: and the render and its depth map as uint8 on the host;
+- ``evaluate()``: the whole evaluation as ``ngp-warp eval`` runs it (files written to a temporary
+  folder), over every test view, scaled to ``--views``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from ngp_warp.outputs.evaluate import depth_to_uint8, evaluate, iter_test_renders, to_uint8
+from ngp_warp.outputs.metrics import psnr, ssim
+from ngp_warp.training.checkpoint import load_trainer
+
+
+def timed_pass(trainer, views: int, work) -> float:
+    """ms per view of one pass over ``views`` test views, ``work(out, gt)`` done on each."""
+    sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
+    sync()
+    start = time.perf_counter()
+    for _, out, gt in itertools.islice(iter_test_renders(trainer), views):
+        work(out, gt)
+    sync()
+    return (time.perf_counter() - start) / views * 1e3
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--views", type=int, default=200)
+    args = ap.parse_args()
+    trainer, _ = load_trainer(args.run / "checkpoint.pt", device=args.device)
+    views = min(args.views, len(trainer.scene.test.names))
+    passes = {
+        "render": lambda out, gt: None,
+        "+ PSNR": lambda out, gt: psnr(out["rgb"], gt),
+        "+ SSIM": lambda out, gt: (psnr(out["rgb"], gt), ssim(out["rgb"], gt)),
+        "+ images to host": lambda out, gt: (psnr(out["rgb"], gt), ssim(out["rgb"], gt), to_uint8(out["rgb"]),
+                                             depth_to_uint8(out["depth"], out["opacity"])),
+    }
+    timed_pass(trainer, 2, passes["render"])  # kernels loaded
+    rows = [(name, timed_pass(trainer, views, work)) for name, work in passes.items()]
+    with tempfile.TemporaryDirectory() as folder:
+        start = time.perf_counter()
+        evaluate(trainer, Path(folder), show_progress=False)
+        whole = (time.perf_counter() - start) / len(trainer.scene.test.names) * 1e3
+    rows.append(("evaluate()", whole))
+    split = trainer.scene.test
+    print(f"{views} test views at {split.width}×{split.height}, device {trainer.device}")
+    print("| pass | ms per view | s for all test views |\n| --- | ---: | ---: |")
+    for name, ms in rows:
+        print(f"| {name} | {ms:.1f} | {ms * len(split.names) / 1e3:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
