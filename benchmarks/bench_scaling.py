@@ -40,8 +40,10 @@ def train_row(scene: Path, out: Path, gpus: int, seconds: float, device: str, la
     run(["ngp-warp", "train", str(scene), "--out", str(out), "--seconds", str(seconds), "--gpus", str(gpus),
          "--device", device, "--no-video", "--quiet", "--overwrite", *sets])
     metrics = json.loads((out / "metrics.json").read_text())
-    return {"gpus": gpus, "label": label, "seconds": seconds, "psnr": metrics["psnr"], "steps": metrics["steps"],
-            "ms": 1000.0 * metrics["train_seconds"] / max(metrics["steps"], 1), "wall": metrics["wall_seconds"]}
+    row = {"gpus": gpus, "label": label, "seconds": seconds, "psnr": metrics["psnr"], "steps": metrics["steps"],
+           "ms": 1000.0 * metrics["train_seconds"] / max(metrics["steps"], 1), "wall": metrics["wall_seconds"]}
+    print(json.dumps(row), flush=True)  # kept if a later run fails
+    return row
 
 
 def time_to(rows: list[dict], target: float) -> str:

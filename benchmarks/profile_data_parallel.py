@@ -3,8 +3,10 @@
     torchrun --nproc-per-node 2 benchmarks/profile_data_parallel.py ../shared/data/lego_half [--set KEY=VALUE]
 
 Every rank trains the same scene (``make_data_parallel``, as ``ngp-warp train --gpus N``). After
-``--warmup`` steps, rank 0 prints one table row per variant of the reduction, each timed over
-``--timed`` steps of the same continuing run (so the sample count is the same):
+``--warmup`` steps, rank 0 prints one table row per variant of the reduction, timed in blocks of
+``--block`` steps taken in turn, ``--rounds`` times, in the same continuing run (so a trend in
+the sample count falls on every variant alike). Under ``--nproc-per-node 1``, ``none`` is one
+GPU's step:
 
 - ``both buckets``: what training does (the MLPs' flat buffer, then the hash table);
 - ``MLPs only``: the table's all-reduce left out (the models drift apart: timing only);
@@ -25,6 +27,7 @@ from pathlib import Path
 
 import torch
 import torch.distributed as dist
+from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -75,8 +78,9 @@ def all_reduce_ms(numel: int, dtype: torch.dtype, device: str, repeats: int = 50
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene")
-    ap.add_argument("--warmup", type=int, default=500)
-    ap.add_argument("--timed", type=int, default=300)
+    ap.add_argument("--warmup", type=int, default=1500)
+    ap.add_argument("--block", type=int, default=50)
+    ap.add_argument("--rounds", type=int, default=6)
     ap.add_argument("--profiled", type=int, default=20)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
@@ -87,12 +91,15 @@ def main() -> None:
     reducer = make_data_parallel(trainer)
     for _ in range(args.warmup):
         trainer.step(0.1)
-    rows = []
-    for name, skip, dtype in (("both buckets", set(), torch.float32), ("MLPs only", {1}, torch.float32),
-                              ("none", {0, 1}, torch.float32), ("table in bf16", set(), torch.bfloat16)):
-        reducer._launch = skipping(reducer, skip)
-        reducer.table_dtype = dtype
-        rows.append((name, timed_steps(trainer, args.timed)))
+    variants = (("both buckets", set(), torch.float32), ("MLPs only", {1}, torch.float32),
+                ("none", {0, 1}, torch.float32), ("table in bf16", set(), torch.bfloat16))
+    spent = dict.fromkeys((name for name, _, _ in variants), 0.0)
+    for _ in range(args.rounds):
+        for name, skip, dtype in variants:
+            reducer._launch = skipping(reducer, skip)
+            reducer.table_dtype = dtype
+            spent[name] += timed_steps(trainer, args.block) / args.rounds
+    rows = list(spent.items())
     reducer._launch = skipping(reducer, set())
     reducer.table_dtype = torch.float32
     table = sum(p.numel() for p in reducer.buckets[1])
@@ -108,7 +115,10 @@ def main() -> None:
             trainer.step(0.2)
         torch.cuda.synchronize()
     if rank == 0:
-        print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=25, max_name_column_width=60))
+        events = prof.key_averages()
+        print(events.table(sort_by="cuda_time_total", row_limit=15, max_name_column_width=60))
+        busy = sum(e.self_device_time_total for e in events if e.device_type == DeviceType.CUDA)
+        print(f"device busy per step (NCCL's kernels included): {busy / args.profiled / 1e3:.2f} ms")
     leave()
 
 

@@ -11,6 +11,9 @@ the one above it; the device is synchronised at the end of each pass, not per vi
 - ``+ images to host``: and the render and its depth map as uint8 on the host;
 - ``evaluate()``: the whole evaluation as ``ngp-warp eval`` runs it (files written to a temporary
   folder), over every test view, scaled to ``--views``.
+
+On CUDA it then prints the device-busy time per view of 10 renders (torch.profiler), so a
+host-bound render shows as ms per view well above it.
 """
 
 from __future__ import annotations
@@ -22,6 +25,9 @@ import time
 from pathlib import Path
 
 import torch
+
+from torch.autograd import DeviceType
+from torch.profiler import ProfilerActivity, profile
 
 from ngp_warp.outputs.evaluate import depth_to_uint8, evaluate, iter_test_renders, to_uint8
 from ngp_warp.outputs.metrics import psnr, ssim
@@ -66,6 +72,13 @@ def main() -> None:
     print("| pass | ms per view | s for all test views |\n| --- | ---: | ---: |")
     for name, ms in rows:
         print(f"| {name} | {ms:.1f} | {ms * len(split.names) / 1e3:.1f} |")
+    if trainer.device.type == "cuda":
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            wall = timed_pass(trainer, 10, passes["render"])
+        events = prof.key_averages()
+        busy = sum(e.self_device_time_total for e in events if e.device_type == DeviceType.CUDA) / 10 / 1e3
+        print(f"render under the profiler: {wall:.1f} ms per view, device busy {busy:.1f} ms per view")
+        print(events.table(sort_by="cuda_time_total", row_limit=12, max_name_column_width=60))
 
 
 if __name__ == "__main__":

@@ -17,8 +17,8 @@ What makes it fast, next to a training render of the same rays:
   network (:meth:`~ngp_warp.ops.field.NGPField.colour`). The image is a one-pass render's, up to
   the MLPs' rounding in batches of another size.
 * the MLPs in the model's precision (bf16 on GPUs, :meth:`RadianceModel.precision`);
-* rays are generated once per image (one launch, :func:`ngp_warp.data.cameras.view_rays`), the
-  outputs are written into buffers allocated once, and
+* rays are generated once per image (one launch per sub-pixel, :func:`ngp_warp.data.cameras.view_rays`,
+  all sub-pixels' rays in one set), the outputs are written into buffers allocated once, and
   the chunks are as large as memory allows: their size adapts to the samples per ray of the
   chunks already rendered (:class:`ChunkSizer`), so a view takes a few chunks, each with two
   host synchronisations (the march's, the pruning's), four with the rounds.
@@ -236,35 +236,38 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     if background is None and model.field.environment is None:
         raise ValueError("background None renders the field's environment, but this field has none")
     bg = None if background is None else torch.full((3,), float(background), device=dev)
-    rgb, depth, opacity = torch.zeros(n, 3, device=dev), torch.zeros(n, device=dev), torch.zeros(n, device=dev)
     sizer = None if chunk is not None else ChunkSizer(
         sample_budget(dev), 1.5 * model.view_samples_per_ray if model.view_samples_per_ray else 64.0)
     shifts = subpixel_offsets(supersample)
+    # every sub-pixel's rays in one set: chunks as large for supersampled views as for plain ones
+    rays = [view_rays(c2w, intrinsics, distortion, width, height, dev, fisheye, shift) for shift in shifts]
+    rays_o, rays_d = (torch.cat(r) for r in zip(*rays)) if len(rays) > 1 else rays[0]
+    total = rays_o.shape[0]
+    rgb, depth, opacity = (torch.zeros(total, 3, device=dev), torch.zeros(total, device=dev),
+                           torch.zeros(total, device=dev))
     counts = {"n_marched": 0, "n_encoded": 0, "n_shaded": 0}
-    for dx, dy in shifts:
-        rays_o, rays_d = view_rays(c2w, intrinsics, distortion, width, height, dev, fisheye, (dx, dy))
-        for _ in range(spp):
-            lo = 0
-            while lo < n:
-                hi = min(n, lo + (chunk or sizer.next_size(n - lo)))
-                chunk_bg = model.field.background(rays_d[lo:hi]) if bg is None else bg
-                out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, code, first_round)
-                rgb[lo:hi] += out["rgb"]
-                depth[lo:hi] += out["depth"]
-                opacity[lo:hi] += out["opacity"]
-                for key in counts:
-                    counts[key] += out[key]
-                if sizer is not None:
-                    sizer.observe(hi - lo, out["n_marched"])
-                lo = hi
+    for _ in range(spp):
+        lo = 0
+        while lo < total:
+            hi = min(total, lo + (chunk or sizer.next_size(total - lo)))
+            chunk_bg = model.field.background(rays_d[lo:hi]) if bg is None else bg
+            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, code, first_round)
+            rgb[lo:hi] += out["rgb"]
+            depth[lo:hi] += out["depth"]
+            opacity[lo:hi] += out["opacity"]
+            for key in counts:
+                counts[key] += out[key]
+            if sizer is not None:
+                sizer.observe(hi - lo, out["n_marched"])
+            lo = hi
     if sizer is not None:
         model.view_samples_per_ray = sizer.samples_per_ray
-    model.view_shaded_per_ray = counts["n_shaded"] / (n * len(shifts) * spp)
+    model.view_shaded_per_ray = counts["n_shaded"] / (total * spp)
     scale = 1.0 / (len(shifts) * spp)
     return {
-        "rgb": rgb.mul_(scale).clamp_(0, 1).reshape(height, width, 3),
-        "depth": depth.mul_(scale).reshape(height, width),
-        "opacity": opacity.mul_(scale).reshape(height, width),
+        "rgb": rgb.view(-1, n, 3).sum(0).mul_(scale).clamp_(0, 1).reshape(height, width, 3),
+        "depth": depth.view(-1, n).sum(0).mul_(scale).reshape(height, width),
+        "opacity": opacity.view(-1, n).sum(0).mul_(scale).reshape(height, width),
         **counts,
     }
 
