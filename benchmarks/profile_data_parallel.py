@@ -8,13 +8,12 @@ Every rank trains the same scene (``make_data_parallel``, as ``ngp-warp train --
 the sample count falls on every variant alike). Under ``--nproc-per-node 1``, ``none`` is one
 GPU's step:
 
-- ``both buckets``: what training does (the MLPs' flat buffer, then the hash table);
-- ``MLPs only``: the table's all-reduce left out (the models drift apart: timing only);
-- ``none``: no reduction (each rank trains alone, the ranks still share the machine);
-- ``table in bf16``: the table's gradient reduced in bfloat16 (``reduction_dtype=bfloat16``).
+- ``reduced``: what training does (every gradient in one flat buffer, one all-reduce);
+- ``none``: no reduction (each rank trains alone, the ranks still share the machine; the
+  models drift apart: timing only).
 
-Then the all-reduce of a tensor of the table's size alone (float32 and bfloat16), and a
-torch.profiler table of ``--profiled`` steps of ``both buckets`` on rank 0 (NCCL's kernels
+Then the all-reduce of the flat buffer alone, in float32 and in bfloat16 (what half the bytes
+on the wire would save), and a torch.profiler table of ``--profiled`` steps of ``both buckets`` on rank 0 (NCCL's kernels
 included), so the reduction's device time and its overlap with the step can be read off.
 """
 
@@ -33,7 +32,7 @@ from torch.profiler import ProfilerActivity, profile
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_train import scene_or_usage_error  # noqa: E402
 from ngp_warp.training.config import TrainConfig, apply_overrides  # noqa: E402
-from ngp_warp.training.distributed import GradientReducer, join, leave, make_data_parallel  # noqa: E402
+from ngp_warp.training.distributed import join, leave, make_data_parallel  # noqa: E402
 from ngp_warp.training.trainer import Trainer  # noqa: E402
 
 
@@ -48,18 +47,6 @@ def timed_steps(trainer: Trainer, steps: int) -> float:
     torch.cuda.synchronize()
     dist.barrier()
     return (time.perf_counter() - start) / steps * 1e3
-
-
-def skipping(reducer: GradientReducer, buckets: set[int]):
-    """The reducer's launch with the all-reduce of ``buckets`` left out (their gradients stay local)."""
-    launch = GradientReducer._launch.__get__(reducer)
-
-    def launch_or_skip(index: int) -> None:
-        if index in buckets:
-            reducer._launched += 1
-        else:
-            launch(index)
-    return launch_or_skip
 
 
 def all_reduce_ms(numel: int, dtype: torch.dtype, device: str, repeats: int = 50) -> float:
@@ -91,25 +78,21 @@ def main() -> None:
     reducer = make_data_parallel(trainer)
     for _ in range(args.warmup):
         trainer.step(0.1)
-    variants = (("both buckets", set(), torch.float32), ("MLPs only", {1}, torch.float32),
-                ("none", {0, 1}, torch.float32), ("table in bf16", set(), torch.bfloat16))
-    spent = dict.fromkeys((name for name, _, _ in variants), 0.0)
+    variants = (("reduced", reducer.finish), ("none", lambda: None))
+    spent = dict.fromkeys((name for name, _ in variants), 0.0)
     for _ in range(args.rounds):
-        for name, skip, dtype in variants:
-            reducer._launch = skipping(reducer, skip)
-            reducer.table_dtype = dtype
+        for name, reduction in variants:
+            trainer.gradient_reduction = reduction
             spent[name] += timed_steps(trainer, args.block) / args.rounds
-    rows = list(spent.items())
-    reducer._launch = skipping(reducer, set())
-    reducer.table_dtype = torch.float32
-    table = sum(p.numel() for p in reducer.buckets[1])
-    fp32, bf16 = (all_reduce_ms(table, d, device) for d in (torch.float32, torch.bfloat16))
+    trainer.gradient_reduction = reducer.finish
+    size = reducer._flat.numel()
+    fp32, bf16 = (all_reduce_ms(size, d, device) for d in (torch.float32, torch.bfloat16))
     if rank == 0:
-        print(f"{world} ranks, {torch.cuda.get_device_name()}; hash table {table} floats ({table * 4 / 2**20:.0f} MiB)")
+        print(f"{world} ranks, {torch.cuda.get_device_name()}; gradients {size} floats ({size * 4 / 2**20:.0f} MiB)")
         print("| reduction | ms per step |\n| --- | ---: |")
-        for name, ms in rows:
+        for name, ms in spent.items():
             print(f"| {name} | {ms:.3f} |")
-        print(f"all-reduce of the table's size alone: float32 {fp32:.3f} ms, bfloat16 {bf16:.3f} ms")
+        print(f"all-reduce of the gradients alone: float32 {fp32:.3f} ms, bfloat16 {bf16:.3f} ms")
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         for _ in range(args.profiled):
             trainer.step(0.2)

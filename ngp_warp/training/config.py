@@ -67,8 +67,6 @@ class TrainConfig:
                                         # backgrounds (an experiment: see docs/captures.md)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
     camera_lr: float = 1e-4             # its Adam learning rate (fox: instant-ngp's 1e-3 drifted 0.4°)
-    reduction_dtype: str = "float32"    # data parallel (--gpus > 1): the hash table's gradient is
-                                        # averaged over the ranks in "float32" or "bfloat16" (half the bytes)
     field: FieldConfig = field(default_factory=FieldConfig)
 
     def check(self) -> None:
@@ -76,8 +74,7 @@ class TrainConfig:
         device), the field's sizes included."""
         choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4),
                    "contraction": ("auto", None, *CONTRACTIONS),
-                   "distortion_spacing": ("world", "normalised"),
-                   "reduction_dtype": ("float32", "bfloat16")}
+                   "distortion_spacing": ("world", "normalised")}
         for name, allowed in choices.items():
             value = getattr(self, name)
             if value not in allowed or type(value) not in (str, int, type(None)):

@@ -11,9 +11,8 @@ averaged over the ranks, so every rank applies the same update and the models st
 
 Each rank's loss is the mean over its own pixels, so with equal batches :math:`g` is the gradient
 of the mean over all of them. An entry stays exactly zero where it is zero on every rank, so the
-lazy table Adam still skips it. The MLPs' gradients are copied into one flat buffer as soon as
-backward has finished them, the hash table's is reduced in place when it is done; both
-reductions run while the step goes on and the deferred optimizer update waits for them.
+lazy table Adam still skips it. All gradients go through one flat buffer and one all-reduce,
+which runs while the next step marches; the deferred optimizer update waits for it.
 Occupancy-grid updates take each cell's max over the ranks. The learning-rate schedule and the
 time budget follow rank 0's clock, broadcast every ``READOUT_EVERY`` steps with the progress
 readout. Rank 0 alone shows progress, evaluates and writes checkpoints; a checkpoint holds no
@@ -25,7 +24,6 @@ from __future__ import annotations
 import datetime
 import os
 import sys
-from functools import partial
 
 import torch
 import torch.distributed as dist
@@ -128,81 +126,43 @@ def launch(n_processes: int, argv: list[str]) -> int:
 
 
 class GradientReducer:
-    """Averages the field's gradients over the ranks in two buckets, launched in this order as
-    soon as backward has finished each (post-accumulate-grad hooks): the MLPs' (and appearance
-    codes'), copied into one flat float32 buffer, then the hash table's, in place.
+    """Averages the field's gradients over the ranks: after each backward every gradient (the
+    MLPs', the appearance codes' and the hash table's) is copied into one flat float32 buffer
+    and reduced by one all-reduce (NCCL's average; a sum scaled by 1/N on gloo), which runs
+    while the next step marches.
 
-    :meth:`finish` (after every backward, on every rank, also without one) launches what the
-    hooks did not, with zero gradients where a parameter got none; :meth:`wait` (before the
-    optimizer reads them) waits for the reductions and copies the flat buffer back.
-
-    ``table_dtype`` bfloat16 reduces the table's gradient through a bfloat16 copy (half the
-    bytes on the wire; zeros stay zero, so the lazy table Adam still skips them).
+    :meth:`finish` (after every backward, on every rank, also without one) launches it, with
+    zero gradients where a parameter got none; :meth:`wait` (before the optimizer reads them)
+    waits for it and copies the averages back into ``p.grad``.
     """
 
-    def __init__(self, field: torch.nn.Module, table_dtype: torch.dtype = torch.float32):
+    def __init__(self, field: torch.nn.Module):
         self.world_size = dist.get_world_size()
-        self.buckets = [list(field.mlp_parameters()), list(field.encoding.parameters())]
-        covered = {id(p) for bucket in self.buckets for p in bucket}
-        if covered != {id(p) for p in field.parameters()}:
-            raise ValueError("the field has parameters outside its MLPs and hash table")
-        device = self.buckets[0][0].device
-        self._flat = torch.empty(sum(p.numel() for p in self.buckets[0]), dtype=torch.float32, device=device)
-        self.table_dtype = table_dtype
-        self._table_copy: torch.Tensor | None = None  # the table's gradient in table_dtype, when not float32
-        self._ready: list[set[int]] = [set() for _ in self.buckets]
-        self._launched = 0  # buckets launched this step, in order
-        self._in_flight: list[tuple[int, dist.Work]] = []
-        for index, bucket in enumerate(self.buckets):
-            for p in bucket:
-                p.register_post_accumulate_grad_hook(partial(self._on_gradient, index))
-
-    def _on_gradient(self, index: int, param: torch.Tensor) -> None:
-        self._ready[index].add(id(param))
-        while self._launched < len(self.buckets) and \
-                len(self._ready[self._launched]) == len(self.buckets[self._launched]):
-            self._launch(self._launched)
-
-    def _launch(self, index: int) -> None:
-        bucket = self.buckets[index]
-        for p in bucket:
-            if p.grad is None:
-                p.grad = torch.zeros_like(p)
-        if len(bucket) > 1:
-            tensor = torch.cat([p.grad.reshape(-1) for p in bucket], out=self._flat)
-        elif self.table_dtype != torch.float32:
-            tensor = self._table_in_dtype(bucket[0].grad)
-        else:
-            tensor = bucket[0].grad
-        tensor.mul_(1.0 / self.world_size)
-        self._in_flight.append((index, dist.all_reduce(tensor, async_op=True)))
-        self._launched += 1
-
-    def _table_in_dtype(self, grad: torch.Tensor) -> torch.Tensor:
-        if self._table_copy is None or self._table_copy.dtype != self.table_dtype:
-            self._table_copy = torch.empty(grad.shape, dtype=self.table_dtype, device=grad.device)
-        return self._table_copy.copy_(grad)
+        self.params = list(field.parameters())
+        self._flat = torch.empty(sum(p.numel() for p in self.params), dtype=torch.float32,
+                                 device=self.params[0].device)
+        self._views = [v.view_as(p) for v, p in zip(self._flat.split([p.numel() for p in self.params]), self.params)]
+        self._average = dist.get_backend() == dist.Backend.NCCL  # gloo has no average
+        self._in_flight: dist.Work | None = None
 
     def finish(self) -> None:
-        """Launch the buckets backward did not complete (all of them after a step without
-        samples) and start the next step's count."""
-        while self._launched < len(self.buckets):
-            self._launch(self._launched)
-        self._launched = 0
-        for ready in self._ready:
-            ready.clear()
+        """Launch the reduction of this step's gradients (zeros where a parameter got none)."""
+        for p in self.params:
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+        torch.cat([p.grad.reshape(-1) for p in self.params], out=self._flat)
+        if not self._average:
+            self._flat.mul_(1.0 / self.world_size)
+        op = dist.ReduceOp.AVG if self._average else dist.ReduceOp.SUM
+        self._in_flight = dist.all_reduce(self._flat, op=op, async_op=True)
 
     def wait(self) -> None:
-        """Wait for the launched reductions; the averaged gradients are then in ``p.grad``."""
-        for index, work in self._in_flight:
-            work.wait()
-            bucket = self.buckets[index]
-            if len(bucket) > 1:
-                views = [v.view_as(p) for v, p in zip(self._flat.split([p.numel() for p in bucket]), bucket)]
-                torch._foreach_copy_([p.grad for p in bucket], views)
-            elif self.table_dtype != torch.float32:
-                bucket[0].grad.copy_(self._table_copy)
-        self._in_flight.clear()
+        """Wait for the launched reduction; the averaged gradients are then in ``p.grad``."""
+        if self._in_flight is None:
+            return
+        self._in_flight.wait()
+        self._in_flight = None
+        torch._foreach_copy_([p.grad for p in self.params], self._views)
 
 
 class RankZeroClock:
@@ -246,7 +206,7 @@ def make_data_parallel(trainer: Trainer) -> GradientReducer:
         raise ValueError("camera_refinement is not supported with data-parallel training (--gpus > 1)")
     rank, _ = rank_and_size()
     broadcast_state(trainer)
-    reducer = GradientReducer(trainer.field, getattr(torch, trainer.config.reduction_dtype))
+    reducer = GradientReducer(trainer.field)
     trainer.ray_stream = rank
     trainer.gradient_reduction = reducer.finish
     trainer.weights.before_update = reducer.wait
