@@ -21,7 +21,6 @@ to any order, e.g. for ``torch.autograd.gradcheck``.
 from __future__ import annotations
 
 import torch
-from torch.fx.experimental.symbolic_shapes import guard_or_false
 
 from ngp_warp import _wp
 from ngp_warp.ops._differentiable_once import SECOND_DERIVATIVE, plain as _plain, refuse_second_derivative
@@ -212,6 +211,16 @@ _VALUE_PROBLEMS = (
 )
 
 
+def _known_zero(n) -> bool:
+    """Whether the sample count ``n`` is 0; under torch.compile, where it may be a size known only
+    when the graph runs, False unless it is known to be 0. torch's symbolic shapes (and sympy)
+    are imported only then."""
+    if not torch.compiler.is_compiling():
+        return n == 0
+    from torch.fx.experimental.symbolic_shapes import guard_or_false
+    return guard_or_false(n == 0)
+
+
 def _check_values(sigmas, t_starts, t_ends, ray_indices, n_rays: int) -> None:
     """ValueError for the first of :data:`_VALUE_PROBLEMS` found in the S ≥ 1 samples (one sync)."""
     flags = torch.stack([
@@ -281,7 +290,7 @@ def composite(
     compiling = torch.compiler.is_compiling()
     if not compiling and sigmas.device.type != "meta":  # meta tensors: shapes only, through the fake kernels
         _wp.device_of(sigmas)  # CPU or CUDA only
-    if guard_or_false(n_samples == 0):  # zeros, still in the inputs' graph (a loss on them can backward);
+    if _known_zero(n_samples):  # zeros, still in the inputs' graph (a loss on them can backward);
         # a count known only when the graph runs (a compiled march's) takes the op, which handles 0
         zero, dev, dtype = sigmas.sum() + rgbs.sum(), sigmas.device, sigmas.dtype
         out = tuple(torch.zeros(shape, device=dev, dtype=dtype) + zero for shape in ((n_rays, 3), n_rays, n_rays))
