@@ -186,6 +186,31 @@ def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tens
     return out
 
 
+def _render_rays(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor | None,
+                 spp: int, code: torch.Tensor | None, first_round: int | None, chunk_size, sizer: ChunkSizer | None):
+    """Rays [R, 3] rendered ``spp`` times in chunks of ``chunk_size(remaining rays)`` rays
+    (:func:`_render_chunk`) → rgb [R, 3], depth [R], opacity [R] summed over the ``spp`` renders,
+    and the host counts summed likewise; ``sizer`` (when given) observes every chunk."""
+    total, dev = rays_o.shape[0], rays_o.device
+    rgb, depth, opacity = torch.zeros(total, 3, device=dev), torch.zeros(total, device=dev), torch.zeros(total, device=dev)
+    counts = {"n_marched": 0, "n_encoded": 0, "n_shaded": 0}
+    for _ in range(spp):
+        lo = 0
+        while lo < total:
+            hi = min(total, lo + chunk_size(total - lo))
+            chunk_bg = model.field.background(rays_d[lo:hi]) if bg is None else bg
+            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, code, first_round)
+            rgb[lo:hi] += out["rgb"]
+            depth[lo:hi] += out["depth"]
+            opacity[lo:hi] += out["opacity"]
+            for key in counts:
+                counts[key] += out[key]
+            if sizer is not None:
+                sizer.observe(hi - lo, out["n_marched"])
+            lo = hi
+    return rgb, depth, opacity, counts
+
+
 @torch.inference_mode()
 def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, *,
                 distortion: torch.Tensor | None = None, fisheye: bool = False, background: float | None = 1.0,
@@ -242,27 +267,11 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     # every sub-pixel's rays in one set: chunks as large for supersampled views as for plain ones
     rays = [view_rays(c2w, intrinsics, distortion, width, height, dev, fisheye, shift) for shift in shifts]
     rays_o, rays_d = (torch.cat(r) for r in zip(*rays)) if len(rays) > 1 else rays[0]
-    total = rays_o.shape[0]
-    rgb, depth, opacity = (torch.zeros(total, 3, device=dev), torch.zeros(total, device=dev),
-                           torch.zeros(total, device=dev))
-    counts = {"n_marched": 0, "n_encoded": 0, "n_shaded": 0}
-    for _ in range(spp):
-        lo = 0
-        while lo < total:
-            hi = min(total, lo + (chunk or sizer.next_size(total - lo)))
-            chunk_bg = model.field.background(rays_d[lo:hi]) if bg is None else bg
-            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, code, first_round)
-            rgb[lo:hi] += out["rgb"]
-            depth[lo:hi] += out["depth"]
-            opacity[lo:hi] += out["opacity"]
-            for key in counts:
-                counts[key] += out[key]
-            if sizer is not None:
-                sizer.observe(hi - lo, out["n_marched"])
-            lo = hi
+    rgb, depth, opacity, counts = _render_rays(model, rays_o, rays_d, bg, spp, code, first_round,
+                                               lambda remaining: chunk or sizer.next_size(remaining), sizer)
     if sizer is not None:
         model.view_samples_per_ray = sizer.samples_per_ray
-    model.view_shaded_per_ray = counts["n_shaded"] / (total * spp)
+    model.view_shaded_per_ray = counts["n_shaded"] / (rays_o.shape[0] * spp)
     scale = 1.0 / (len(shifts) * spp)
     return {
         "rgb": rgb.view(-1, n, 3).sum(0).mul_(scale).clamp_(0, 1).reshape(height, width, 3),
