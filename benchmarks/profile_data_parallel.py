@@ -85,7 +85,7 @@ def main() -> None:
             trainer.gradient_reduction = reduction
             spent[name] += timed_steps(trainer, args.block) / args.rounds
     trainer.gradient_reduction = reducer.finish
-    size = reducer._flat.numel()
+    size = sum(p.numel() for p in reducer.params)
     fp32, bf16 = (all_reduce_ms(size, d, device) for d in (torch.float32, torch.bfloat16))
     if rank == 0:
         print(f"{world} ranks, {torch.cuda.get_device_name()}; gradients {size} floats ({size * 4 / 2**20:.0f} MiB)")
