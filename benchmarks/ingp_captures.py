@@ -8,8 +8,8 @@ scores the held-out views on the whole image and its right half):
 
     python benchmarks/ingp_captures.py write --lego ../shared/data/lego_half --out DIR
         [--scenes lego-colmap,demo-colmap,...]
-    for s in DIR/*/; do python run_fox.py --scene $s --seconds 60 --out $s/ingp.json ...; done
-    python benchmarks/ingp_captures.py table DIR
+    for s in DIR/*-a*/; do python run_fox.py --scene $s --seconds 60 --out RESULTS/$(basename $s).json ...; done
+    python benchmarks/ingp_captures.py table --out RESULTS
 
 ``write`` writes each capture scene of ``bench_captures.py`` (``DIR/captures/NAME``) and beside it
 what an instant-ngp user trains on (``DIR/NAME-aSCALE``, images copied):
@@ -21,7 +21,7 @@ what an instant-ngp user trains on (``DIR/NAME-aSCALE``, images copied):
   and no ``aabb_scale`` (1, the box that holds the object);
 * ``--aabb-scale N`` adds the COLMAP scenes once more with that box.
 
-``table`` prints one row per run (``NAME-aSCALE/ingp.json``): PSNR on black (instant-ngp's
+``table`` prints one row per run (``RESULTS/NAME-aSCALE.json``): PSNR on black (instant-ngp's
 renders of opaque photos) and on white, the right half, SSIM, steps and ms per step.
 """
 
@@ -123,8 +123,8 @@ def write(args) -> None:
 def table(args) -> None:
     lines = ["| scene | aabb_scale | PSNR whole (black) | whole (white) | right half (black) | SSIM | steps | ms/step |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for path in sorted(args.out.glob("*/ingp.json")):
-        name, box = path.parent.name.rsplit("-a", 1)
+    for path in sorted(args.out.glob("*-a*.json")):
+        name, box = path.stem.rsplit("-a", 1)
         result = json.loads(path.read_text())
         if not result.get("checkpoints"):
             lines.append(f"| {name} | {box} | failed: {result.get('error', 'no checkpoint')} | | | | | |")
@@ -139,7 +139,7 @@ def table(args) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("step", choices=("write", "table"))
-    parser.add_argument("--out", type=Path, required=True, help="the folder of instant-ngp forms and their results")
+    parser.add_argument("--out", type=Path, required=True, help="write: the folder of instant-ngp forms; table: the folder of run_fox.py's results")
     parser.add_argument("--scenes", default=",".join(DEFAULT_SCENES))
     parser.add_argument("--lego", type=Path, help="lego_half (NeRF-synthetic folder)")
     parser.add_argument("--aabb-scale", type=int, help="also write each COLMAP scene with this box")
