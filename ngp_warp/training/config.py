@@ -11,7 +11,7 @@ from ngp_warp._checks import check_numbers
 from ngp_warp.data.loading import Scene
 from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, FieldConfig
 from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
-from ngp_warp.training.scene_defaults import (appearance_dim, choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
+from ngp_warp.training.scene_defaults import (CONTRACTION_FITS, appearance_dim, choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
                                      distortion_weight, occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
 
@@ -39,6 +39,8 @@ class TrainConfig:
                                         # scenes beyond the unit box or unbounded, 0 for NeRF-synthetic)
     contraction: str | None = "auto"    # "l2" | "linf" | None: unbounded space contracted (mip-NeRF 360,
                                         # nerfstudio's L∞); "auto": the scene's (scene_defaults)
+    contraction_fit: str = "cameras"    # the contraction's inner box holds every camera ("cameras") or
+                                        # what the median camera sees at the centre ("seen")
     aabb_scale: int | str | None = "auto"  # the field's box, instant-ngp's aabb_scale (a power of two);
                                         # None: the scene files'; "auto": per scene (scene_defaults)
     early_stop_eps: float = 1e-4
@@ -73,7 +75,7 @@ class TrainConfig:
         """Raise ValueError naming the first setting outside its range (None is left to the
         device), the field's sizes included."""
         choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4),
-                   "contraction": ("auto", None, *CONTRACTIONS),
+                   "contraction": ("auto", None, *CONTRACTIONS), "contraction_fit": CONTRACTION_FITS,
                    "distortion_spacing": ("world", "normalised")}
         for name, allowed in choices.items():
             value = getattr(self, name)
@@ -205,7 +207,8 @@ def default_target_samples(config: TrainConfig, device_type: str) -> int:
     return config.target_samples or (1 << 18 if device_type == "cuda" else 1 << 15)
 
 
-def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str | None = None) -> float:
+def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str | None = None,
+                             contraction_fit: str = "cameras") -> float:
     """The finest hash-grid resolution whose cells are about one training pixel wide at the
     field box's centre: the box's longest side over the median pixel footprint (camera distance
     to the centre over the focal length fx), rounded, clamped to [64, 2048 per unit cube]
@@ -224,7 +227,7 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str 
     (its [-1, 1] in the contracted [-2, 2]): the resolution returned is twice the box's.
     """
     split = scene.train
-    box = (scene.aabb if contraction is None else contraction_box(scene)).double()
+    box = (scene.aabb if contraction is None else contraction_box(scene, contraction_fit)).double()
     centre = 0.5 * (box[:3] + box[3:])
     distance = (split.c2w[:, :, 3].double() - centre).norm(dim=-1)
     footprint = float((distance / split.intrinsics[:, 0].double()).median()) / math.sqrt(subpixels)
@@ -259,7 +262,7 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     if field_config.environment is None:  # contracted fields learn the colour at infinity
         field_config = dataclasses.replace(field_config, environment=kind is not None)
     if field_config.finest_resolution is None:
-        finest = pixel_matched_resolution(scene, config.supersample, kind)
+        finest = pixel_matched_resolution(scene, config.supersample, kind, config.contraction_fit)
         field_config = dataclasses.replace(field_config, finest_resolution=finest)
     field_config.check()  # the finest resolution picked for the scene against the base one
     return dataclasses.replace(config, field=field_config)

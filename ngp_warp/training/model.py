@@ -51,6 +51,7 @@ class RadianceModel:
     @classmethod
     def for_scene(cls, scene: Scene, field_config: FieldConfig, device: torch.device, *, grid_resolution: int,
                   steps_per_diagonal: int, cone_angle: float, contraction: str | None = None,
+                  contraction_fit: str = "cameras",
                   **settings) -> RadianceModel:
         """A fresh field and occupancy grid for ``scene`` on ``device``, marched from the scene's
         near distance to :data:`FAR`, one appearance code per training image when
@@ -64,7 +65,7 @@ class RadianceModel:
         step the contracted grid's diagonal over ``steps_per_diagonal``. Cone steps
         (``cone_angle`` > 0) grow up to :func:`~ngp_warp.training.scene_defaults.cone_steps`' largest step.
         """
-        box = scene.occupancy_aabb if contraction is None else contraction_box(scene)
+        box = scene.occupancy_aabb if contraction is None else contraction_box(scene, contraction_fit)
         field = NGPField(scene.aabb if contraction is None else box, field_config, contraction=contraction,
                          n_images=len(scene.train)).to(device)
         levels = scene.occupancy_levels if contraction is None else 1

@@ -48,6 +48,7 @@ _MAX_RESULTANT = 0.5  # |mean horizontal direction from the centre to the camera
 _MIN_INWARD = 0.8  # mean cosine between a camera's view axis and its direction to the centre
 _BACKDROP_SHARE = 0.98  # share of the images' edge pixels within _BACKDROP_TOLERANCE of one colour
 _BACKDROP_TOLERANCE = 8  # in 8-bit levels, per channel
+CONTRACTION_FITS = ("cameras", "seen")  # what the contraction's inner box is grown to hold
 
 
 def cone_steps(scene: Scene, contraction: str | None) -> tuple[float, float, float]:
@@ -151,13 +152,20 @@ def with_backdrop_alpha(images: torch.Tensor) -> torch.Tensor:
     return torch.cat([images, torch.where(backdrop, 0, 255).to(torch.uint8)], -1)
 
 
-def contraction_box(scene: Scene) -> torch.Tensor:
+def contraction_box(scene: Scene, fit: str = "cameras") -> torch.Tensor:
     """[6] float32 inner box of the contraction: the finest cascade's box, grown about its centre
-    (keeping its proportions) until it holds every training camera."""
+    (keeping its proportions) until it holds every training camera (``fit`` "cameras"), or to the
+    box the median camera sees at that centre (``fit`` "seen", :func:`seen_aabb_scale`: the
+    cameras then lie in contracted space)."""
+    if fit not in CONTRACTION_FITS:
+        raise ValueError(f"contraction_fit must be one of {', '.join(CONTRACTION_FITS)}, got {fit!r}")
     box = scene.occupancy_aabb.double()
     centre, half = (box[:3] + box[3:]) / 2, (box[3:] - box[:3]) / 2
-    reach = ((scene.train.c2w[:, :, 3].double() - centre).abs() / half).amax()
-    grow = max(1.0, float(reach) * 1.05)
+    if fit == "seen":
+        grow = float(seen_aabb_scale(scene))
+    else:
+        reach = ((scene.train.c2w[:, :, 3].double() - centre).abs() / half).amax()
+        grow = max(1.0, float(reach) * 1.05)
     return torch.cat([centre - half * grow, centre + half * grow]).float()
 
 

@@ -62,6 +62,7 @@ class Trainer:
         self.model = RadianceModel.for_scene(
             scene, cfg.field, self.device, grid_resolution=cfg.grid_resolution,
             steps_per_diagonal=cfg.steps_per_diagonal, cone_angle=cfg.cone_angle, contraction=cfg.contraction,
+            contraction_fit=cfg.contraction_fit,
             early_stop_eps=cfg.early_stop_eps, mlp_precision=cfg.mlp_precision)
         # opaque images of contracted scenes: fitted over the field's learned environment (view_background)
         self.black_background = self.model.learns_background and self.train_split.images.shape[-1] == 3
