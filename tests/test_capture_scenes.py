@@ -15,7 +15,7 @@ from ngp_warp.cli import main as ngp_warp_command
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.training.config import TrainConfig
-from ngp_warp.training.scene_defaults import (choose_aabb_scale, choose_contraction, plain_backdrop,
+from ngp_warp.training.scene_defaults import (choose_aabb_scale, choose_contraction, contraction_box, plain_backdrop,
                                              seen_aabb_scale, with_backdrop_alpha)
 from ngp_warp.training.trainer import Trainer
 from ngp_warp.data.scene_unbounded import environment_colours, render_unbounded_rays, write_unbounded_scene
@@ -112,6 +112,28 @@ def test_backdrop_alpha_trains_pure_white_as_transparent_when_asked(demo, tmp_pa
     small = {"steps": 1, "target_samples": 1 << 10, "grid_resolution": 16}
     assert Trainer(white, TrainConfig(**small, backdrop_alpha=True), device="cpu").train_split.images.shape[-1] == 4
     assert Trainer(white, TrainConfig(**small), device="cpu").train_split.images.shape[-1] == 3  # off by default
+
+
+def test_contraction_fit_seen_sizes_the_inner_box_to_what_the_cameras_see(demo, tmp_path):
+    sky = load_scene(capture_scenes.write_capture(demo, tmp_path / "sky", "colmap-sky"))
+    cameras = sky.train.c2w[:, :, 3]
+    around_cameras, seen = contraction_box(sky), contraction_box(sky, "seen")
+    assert (around_cameras[:3] <= cameras.amin(0)).all() and (around_cameras[3:] >= cameras.amax(0)).all()
+    finest = sky.occupancy_aabb
+    torch.testing.assert_close(seen, finest * seen_aabb_scale(sky))  # the finest cascade's box is centred on 0
+    inside = ((cameras >= seen[:3]) & (cameras <= seen[3:])).all(-1)
+    assert not inside.any() and (seen[3:] - seen[:3] < around_cameras[3:] - around_cameras[:3]).all()
+    with pytest.raises(ValueError, match="contraction_fit must be one of cameras, seen"):
+        contraction_box(sky, "sphere")
+    with pytest.raises(ValueError, match="contraction_fit must be one of"):
+        TrainConfig(contraction_fit="sphere").check()
+    small = {"steps": 1, "target_samples": 1 << 10, "grid_resolution": 16}
+    trained = {fit: Trainer(sky, TrainConfig(**small, contraction_fit=fit), device="cpu") for fit in ("cameras", "seen")}
+    for fit, box in (("cameras", around_cameras), ("seen", seen)):
+        assert trained[fit].config.contraction == "l2"
+        torch.testing.assert_close(torch.tensor(trained[fit].model.grid.inner_aabb_host), box)
+    # the finest resolution is pixel-matched over the inner box: a smaller box, fewer cells
+    assert trained["seen"].config.field.finest_resolution < trained["cameras"].config.field.finest_resolution
 
 
 @pytest.mark.slow

@@ -11,8 +11,8 @@ from ngp_warp._checks import check_numbers
 from ngp_warp.data.loading import Scene
 from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, FieldConfig
 from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
-from ngp_warp.training.scene_defaults import (CONTRACTION_FITS, appearance_dim, choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
-                                     distortion_weight, occupancy_threshold)
+from ngp_warp.training.scene_defaults import (CONTRACTION_FITS, appearance_dim, choose_aabb_scale, choose_contraction,
+                                             cone_steps, contraction_box, distortion_weight, occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
 
 AABB_SCALES = tuple(2**k for k in range(MAX_AABB_SCALE.bit_length()))  # field boxes of 1 ... 2^15 unit cubes

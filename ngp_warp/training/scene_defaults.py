@@ -9,8 +9,9 @@
   (not NeRF-synthetic) whose cameras surround a centre and look inward
   (:func:`cameras_surround_centre`) and whose images show more than a plain backdrop
   (:func:`plain_backdrop`), else none. Its inner box is the finest cascade's box, grown about
-  its centre to hold every training camera; the field learns the colour at infinity
-  (``FieldConfig.environment``).
+  its centre to hold every training camera (``contraction_fit`` "seen": to what the median
+  camera sees, which suits an object before a distant backdrop and costs a scene with content
+  all around, RESULTS.md); the field learns the colour at infinity (``FieldConfig.environment``).
 * Field box: a COLMAP capture of an object on a plain backdrop that trains bounded gets the box
   its cameras see (:func:`choose_aabb_scale`), not the one holding its cameras.
 * Occupancy threshold: instant-ngp's 0.01 (optical thickness of one step) on NeRF-synthetic
