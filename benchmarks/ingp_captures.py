@@ -40,15 +40,21 @@ from bench_captures import scene_folder  # noqa: E402
 
 COLMAP2NERF_AABB_SCALE = 32  # colmap2nerf.py's default box
 COLMAP2NERF_CAMERA_DISTANCE = 4.0  # colmap2nerf.py scales the mean camera distance to this
+COLMAP2NERF_WORLD = np.diag([1.0, 1.0, -1.0, 1.0])[[1, 0, 2, 3]]  # its world: x and y swapped, z flipped
 DEFAULT_SCENES = ("lego-colmap", "lego-ngp", "lego-colmap-sky", "demo-colmap", "demo-ngp", "demo-colmap-sky",
                   "unbounded-colmap", "room-colmap")
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """[3, 3] float64 rotation taking the unit vector ``a`` [3] to the unit vector ``b`` [3]."""
+    """[3, 3] float64 rotation taking the unit vector ``a`` [3] to the unit vector ``b`` [3] (for
+    opposite vectors, the half turn about an axis normal to ``a``)."""
     v, c = np.cross(a, b), float(a @ b)
     if np.linalg.norm(v) < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+        if c > 0:
+            return np.eye(3)
+        normal = np.cross(a, np.eye(3)[np.argmin(np.abs(a))])
+        normal /= np.linalg.norm(normal)
+        return 2 * np.outer(normal, normal) - np.eye(3)
     k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
     return np.eye(3) + k + k @ k * ((1 - c) / (v @ v))
 
@@ -56,7 +62,7 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def looked_at_point(c2w: np.ndarray) -> np.ndarray:
     """[3] float64: the weighted mean over camera pairs of the points where their optical axes
     pass closest (colmap2nerf's centre of attention); ``c2w`` [N, 4, 4] OpenGL camera-to-world.
-    Parallel axes weigh nothing; a point in front of both cameras is clamped to their centres."""
+    Parallel axes weigh nothing; a closest point behind a camera is moved to that camera's centre."""
     total, weight = np.zeros(3), 0.0
     for a in c2w:
         for b in c2w:
@@ -75,13 +81,15 @@ def looked_at_point(c2w: np.ndarray) -> np.ndarray:
 
 
 def colmap2nerf_poses(c2w: np.ndarray) -> np.ndarray:
-    """[N, 4, 4] float64: the OpenGL camera-to-world ``c2w`` [N, 4, 4] placed as colmap2nerf
-    places them (mean camera up turned to +z, the centre of attention at the origin, mean camera
-    distance 4)."""
-    up = c2w[:, :3, 1].sum(0)
+    """[N, 4, 4] float64: the OpenGL camera-to-world ``c2w`` [N, 4, 4] of a COLMAP model (in its
+    world) placed as colmap2nerf places them: the world's x and y swapped and z flipped, the mean
+    camera up turned to +z, the centre of attention moved to the origin, the mean camera distance
+    scaled to 4."""
+    poses = COLMAP2NERF_WORLD @ c2w
+    up = poses[:, :3, 1].sum(0)
     turn = np.eye(4)
     turn[:3, :3] = rotation_between(up / np.linalg.norm(up), np.array([0.0, 0.0, 1.0]))
-    poses = turn @ c2w
+    poses = turn @ poses
     poses[:, :3, 3] -= looked_at_point(poses)
     poses[:, :3, 3] *= COLMAP2NERF_CAMERA_DISTANCE / np.linalg.norm(poses[:, :3, 3], axis=1).mean()
     return poses
@@ -97,6 +105,8 @@ def write_ingp_form(capture: Path, dst: Path, aabb_scale: int | None) -> Path:
         meta = json.loads((capture / "transforms.json").read_text())
     else:
         model = read_colmap_model(capture / "sparse" / "0")
+        if len(model.cameras) != 1:
+            raise SystemExit(f"{capture}: {len(model.cameras)} cameras; the capture scenes have one")
         poses = colmap2nerf_poses(np.stack([camera_to_world(im) for im in model.images]))
         meta = dict(camera_keys(next(iter(model.cameras.values()))))
         meta["frames"] = [{"file_path": f"images/{im.name}", "transform_matrix": p.tolist()}
@@ -132,7 +142,7 @@ def table(args) -> None:
         last = result["checkpoints"][-1]
         ev = last["eval"]
         lines.append(f"| {name} | {box} | {ev['psnr']:.2f} | {ev['white_bg']['psnr']:.2f} | {ev['psnr_right_half']:.2f} "
-                     f"| {ev.get('ssim', float('nan')):.4f} | {last['steps']} | {last['ms_per_step']:.2f} |")
+                     f"| {ev['ssim']:.4f} | {last['steps']} | {last['ms_per_step']:.2f} |")
     print("\n".join(lines))
 
 
@@ -144,8 +154,11 @@ def main() -> None:
     parser.add_argument("--lego", type=Path, help="lego_half (NeRF-synthetic folder)")
     parser.add_argument("--aabb-scale", type=int, help="also write each COLMAP scene with this box")
     args = parser.parse_args()
-    args.fox = None
-    write(args) if args.step == "write" else table(args)
+    args.fox = None  # bench_captures.scene_folder reads it; fox ships as instant-ngp's own form
+    if args.step == "write":
+        write(args)
+    else:
+        table(args)
 
 
 if __name__ == "__main__":

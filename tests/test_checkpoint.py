@@ -243,3 +243,20 @@ def test_checkpoint_keeps_the_field_box_and_an_old_one_the_files_box(tiny_scene,
     torch.save(state, tmp_path / "c.pt")
     loaded = load_trainer(tmp_path / "c.pt", device="cpu")[0]
     assert loaded.config.aabb_scale is None and torch.equal(loaded.scene.aabb, trainer.scene.aabb)
+
+
+def test_a_contracted_checkpoint_rebuilds_its_inner_box_or_says_it_cannot(tiny_scene, tmp_path):
+    cfg = tiny_config(1)
+    cfg.contraction, cfg.contraction_fit = "l2", "seen"
+    trainer = Trainer(load_scene(tiny_scene), cfg, device="cpu")
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    loaded = load_trainer(tmp_path / "c.pt", device="cpu")[0]
+    assert loaded.config.contraction_fit == "seen"
+    assert loaded.grid.inner_aabb_host == trainer.grid.inner_aabb_host
+    assert loaded.model.march.step_size == trainer.model.march.step_size
+    state = torch.load(tmp_path / "c.pt", weights_only=False)
+    state["grid"]["inner_aabb"] = state["grid"]["inner_aabb"] * 2  # as if the scene had moved since
+    torch.save(state, tmp_path / "c.pt")
+    with pytest.raises(CheckpointError, match="another contraction box than the run trained in") as err:
+        load_trainer(tmp_path / "c.pt", device="cpu")
+    assert "\n" not in str(err.value)

@@ -58,8 +58,12 @@ def test_the_cameras_are_placed_as_colmap2nerf_places_them():
     np.testing.assert_allclose(up / np.linalg.norm(up), [0.0, 0.0, 1.0], atol=1e-12)
     for before, after in zip(poses, placed):  # one rotation for all: the cameras keep their relative poses
         np.testing.assert_allclose(after[:3, :3] @ before[:3, :3].T, placed[0, :3, :3] @ poses[0, :3, :3].T, atol=1e-12)
-    for a, b in [((0, 0, 1.0), (0, 0, 1.0)), ((0, 0, -1.0), (0, 0, 1.0)), ((1.0, 0, 0), (0, 1.0, 0))]:
-        np.testing.assert_allclose(ingp_captures.rotation_between(np.array(a), np.array(b)) @ a, b, atol=1e-12)
+    for a, b in [((0, 0, 1.0), (0, 0, 1.0)), ((0, 0, -1.0), (0, 0, 1.0)), ((1.0, 0, 0), (0, 1.0, 0)),
+                 ((-1.0, 0, 0), (1.0, 0, 0)), ((0, 0.6, 0.8), (0, -0.6, -0.8))]:
+        turn = ingp_captures.rotation_between(np.array(a), np.array(b))
+        np.testing.assert_allclose(turn @ a, b, atol=1e-12)
+        np.testing.assert_allclose(turn @ turn.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(turn) == pytest.approx(1.0)
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +77,12 @@ def test_a_colmap_capture_becomes_a_transforms_json_with_the_same_views(demo, tm
     written = ingp_captures.write_ingp_form(capture, tmp_path / "ingp", None)
     meta = json.loads((written / "transforms.json").read_text())
     assert meta["aabb_scale"] == 32 and len(meta["frames"]) == 12 and meta["w"] == 16
-    assert sorted((written / "images").iterdir()) and (written / "images" / "0000.png").read_bytes() == \
-        (capture / "images" / "0000.png").read_bytes()
+    assert (written / "images" / "0000.png").read_bytes() == (capture / "images" / "0000.png").read_bytes()
+    poses = np.array([frame["transform_matrix"] for frame in meta["frames"]])
+    np.testing.assert_allclose(np.linalg.norm(poses[:, :3, 3], axis=1).mean(), 4.0)
+    up = poses[:, :3, 1].sum(0)
+    np.testing.assert_allclose(up / np.linalg.norm(up), [0.0, 0.0, 1.0], atol=1e-9)
+    np.testing.assert_allclose(ingp_captures.looked_at_point(poses), 0.0, atol=1e-9)
     ours, theirs = load_scene(capture), load_scene(written)
     assert [Path(p).name for p in ours.test.names] == [Path(p).name for p in theirs.test.names] == ["0000.png", "0008.png"]
     torch.testing.assert_close(ours.train.intrinsics, theirs.train.intrinsics)

@@ -153,6 +153,19 @@ def _restore(trainer: Trainer, state: dict, path: Path) -> None:
         raise CheckpointError(f"{path}: its saved tensors do not fit its settings ({reason})") from None
 
 
+def _check_same_box(trainer: Trainer, state: dict, path: Path) -> None:
+    """The contraction's inner box the settings rebuild from the scene must be the one the run
+    trained in: the step length and the field's initial density follow from it, and only the box
+    itself is restored from the file."""
+    saved = state["grid"].get("inner_aabb")
+    if saved is None:
+        return
+    built = trainer.grid.inner_aabb_host
+    if not torch.allclose(saved.double().cpu(), torch.tensor(built, dtype=torch.float64), rtol=1e-5, atol=1e-6):
+        raise CheckpointError(f"{path}: its scene gives another contraction box than the run trained in "
+                              f"({[round(v, 4) for v in built]} against {[round(v, 4) for v in saved.tolist()]})")
+
+
 def load_trainer(path: Path, device: str | None = None, scene_path: Path | None = None) -> tuple[Trainer, dict]:
     """Rebuild the trainer saved in ``path`` (its scene is re-read from the recorded folder,
     or ``scene_path``, which must hold the same views and cameras). Returns the trainer and the
@@ -168,6 +181,7 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
             raise CheckpointError(f"{path}: cannot reload its scene: {e}") from None
         _check_same_scene(path, record, scene)
         trainer = Trainer(scene, _train_config(path, state["train_config"]), device=device)
+        _check_same_box(trainer, state, path)
         _restore(trainer, state, path)
     except KeyError as e:  # a part this version saves and the file lacks
         raise CheckpointError(f"{path}: written by another ngp-warp version (no {e.args[0]!r} in it)") from None

@@ -39,8 +39,8 @@ class TrainConfig:
                                         # scenes beyond the unit box or unbounded, 0 for NeRF-synthetic)
     contraction: str | None = "auto"    # "l2" | "linf" | None: unbounded space contracted (mip-NeRF 360,
                                         # nerfstudio's L∞); "auto": the scene's (scene_defaults)
-    contraction_fit: str = "cameras"    # the contraction's inner box holds every camera ("cameras") or
-                                        # what the median camera sees at the centre ("seen")
+    contraction_fit: str = "cameras"    # with a contraction, its inner box holds every camera ("cameras")
+                                        # or what the median camera sees at the centre ("seen")
     aabb_scale: int | str | None = "auto"  # the field's box, instant-ngp's aabb_scale (a power of two);
                                         # None: the scene files'; "auto": per scene (scene_defaults)
     early_stop_eps: float = 1e-4

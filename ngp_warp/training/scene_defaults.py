@@ -156,8 +156,8 @@ def with_backdrop_alpha(images: torch.Tensor) -> torch.Tensor:
 def contraction_box(scene: Scene, fit: str = "cameras") -> torch.Tensor:
     """[6] float32 inner box of the contraction: the finest cascade's box, grown about its centre
     (keeping its proportions) until it holds every training camera (``fit`` "cameras"), or to the
-    box the median camera sees at that centre (``fit`` "seen", :func:`seen_aabb_scale`: the
-    cameras then lie in contracted space)."""
+    box the median camera sees at that centre (``fit`` "seen", :func:`seen_aabb_scale`; cameras
+    farther out lie in contracted space)."""
     if fit not in CONTRACTION_FITS:
         raise ValueError(f"contraction_fit must be one of {', '.join(CONTRACTION_FITS)}, got {fit!r}")
     box = scene.occupancy_aabb.double()
