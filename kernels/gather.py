@@ -1,6 +1,8 @@
 """Row gathers and scatters of packed samples, as 4-byte words (any dtype whose rows are whole
 words: float32, int32, int64, bfloat16 pairs ...), one thread per word so that a warp reads and
-writes whole rows, contiguously. No gradient (the inference renderer's index work)."""
+writes whole rows, contiguously (the inference renderer's index work, and the forward of a
+per-sample embedding lookup); and the lookup's backward, a scatter-add of rows that come in runs
+of equal indices (the samples of a ray share its image)."""
 
 import warp as wp
 
@@ -28,3 +30,27 @@ def scatter_words(first: int, values: wp.array(dtype=wp.int32), rows: wp.array(d
                   dst: wp.array(dtype=wp.int32)):
     item = first + wp.tid()
     dst[word_in_rows(item, words, rows)] = values[item]
+
+
+# grad_weight[rows[i], c] += grad_out[i, c]. Item = chunk·C + c sums column c over the `run`
+# rows of its chunk, one atomic add per run of equal indices in it (samples of one ray share
+# their image, so a chunk of a ray's samples adds once).
+@wp.kernel
+def add_rows_in_runs(first: int, grad_out: wp.array2d(dtype=float), rows: wp.array(dtype=wp.int64), run: int,
+                     grad_weight: wp.array2d(dtype=float)):
+    item = first + wp.tid()
+    cols = grad_out.shape[1]
+    chunk = item // cols
+    col = item - chunk * cols
+    start = chunk * run
+    end = wp.min(start + run, rows.shape[0])
+    current = rows[start]
+    total = float(0.0)
+    for i in range(start, end):
+        row = rows[i]
+        if row != current:
+            wp.atomic_add(grad_weight, int(current), col, total)
+            total = float(0.0)
+            current = row
+        total += grad_out[i, col]
+    wp.atomic_add(grad_weight, int(current), col, total)

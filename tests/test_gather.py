@@ -1,11 +1,12 @@
 """Row gathers and scatters (the renderer's index work) against their row-by-row twins: every
-dtype and row width the renderer moves, the fallbacks, input checks, and CPU against CUDA."""
+dtype and row width the renderer moves, the fallbacks, input checks, and CPU against CUDA; the
+appearance codes' embedding lookup, values and gradient, against its float64 twin."""
 
 import pytest
 import torch
 
 from ngp_warp._reference import gather as ref
-from ngp_warp.ops.gather import gather_rows, scatter_rows
+from ngp_warp.ops.gather import RUN, embedding_rows, gather_rows, scatter_rows
 
 CASES = [  # (shape, dtype): h in bf16, positions, sigmas, int64 indices, int32 offsets, bool (fallback), odd bf16
     ((500, 16), torch.bfloat16), ((500, 3), torch.float32), ((500,), torch.float32), ((500,), torch.int64),
@@ -74,3 +75,46 @@ def test_cuda_matches_cpu_on_the_renderers_rows():
     h = torch.randn(100_000, 16, generator=g).to(torch.bfloat16)
     rows = torch.randint(0, 100_000, (40_000,), generator=g).sort().values
     assert torch.equal(gather_rows(h.cuda(), rows.cuda()).cpu(), gather_rows(h, rows))
+
+
+def rows_in_runs(n_rows: int, n_weights: int, g: torch.Generator) -> torch.Tensor:
+    """[n_rows] int64 in runs of 1–150 equal indices (a ray's samples), some runs longer than a
+    thread's chunk, a few lone indices, neighbouring runs often of the same index."""
+    runs = []
+    while sum(len(r) for r in runs) < n_rows:
+        length = int(torch.randint(1, 150, (1,), generator=g))
+        runs.append(torch.full((length,), int(torch.randint(0, n_weights, (1,), generator=g))))
+    return torch.cat(runs)[:n_rows]
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+@pytest.mark.parametrize("order", ["runs", "shuffled"])
+def test_embedding_rows_matches_its_float64_twin_in_value_and_gradient(device, order):
+    g = torch.Generator().manual_seed(11 if order == "runs" else 12)
+    weight = torch.randn(57, 16, generator=g)
+    rows = rows_in_runs(5000, 57, g)
+    if order == "shuffled":
+        rows = rows[torch.randperm(rows.shape[0], generator=g)]
+    assert rows.shape[0] > 10 * RUN and rows.unique().numel() > 30
+    upstream = torch.randn(rows.shape[0], 16, generator=g)
+    w = weight.clone().to(device).requires_grad_(True)
+    out = embedding_rows(w, rows.to(device))
+    (out * upstream.to(device)).sum().backward()
+    w64 = weight.double().requires_grad_(True)
+    want = ref.embedding_rows(w64, rows)
+    (want * upstream.double()).sum().backward()
+    assert out.dtype == torch.float32 and torch.equal(out.detach().cpu(), want.detach().float())
+    assert torch.allclose(w.grad.cpu().double(), w64.grad, rtol=1e-5, atol=1e-4)
+    assert w64.grad.abs().sum(1).gt(0).sum() == rows.unique().numel()  # the gradient reaches every row used
+
+
+def test_embedding_rows_of_no_rows_and_bad_inputs():
+    weight = torch.randn(5, 3, requires_grad=True)
+    out = embedding_rows(weight, torch.zeros(0, dtype=torch.int64))
+    out.sum().backward()
+    assert out.shape == (0, 3) and torch.equal(weight.grad, torch.zeros(5, 3))
+    for bad_weight in (torch.zeros(5, 3, dtype=torch.float64), torch.zeros(5), torch.zeros(3, 5).t()):
+        with pytest.raises(ValueError):
+            embedding_rows(bad_weight, torch.tensor([1, 2]))
+    with pytest.raises(ValueError):
+        embedding_rows(weight, torch.tensor([1, 2], dtype=torch.int32))

@@ -14,3 +14,8 @@ def scatter_rows(dst: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) ->
     """``dst[rows] = values``, row by row."""
     for i, r in enumerate(rows.tolist()):
         dst[r] = values[i]
+
+
+def embedding_rows(weight: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """``weight[rows]``, row by row, differentiable in ``weight`` through autograd."""
+    return torch.stack([weight[int(r)] for r in rows]) if len(rows) else weight[:0] * 1

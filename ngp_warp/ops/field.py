@@ -32,6 +32,7 @@ import warp as wp
 from ngp_warp import _wp
 from ngp_warp._checks import check_aabb_values, check_numbers
 from ngp_warp.ops.contraction import KINDS, contract
+from ngp_warp.ops.gather import embedding_rows
 from ngp_warp.ops.hashgrid import HashGridEncoding
 from ngp_warp.kernels import field as K
 
@@ -373,7 +374,7 @@ class NGPField(nn.Module):
             return [self.appearance.weight.mean(0, keepdim=True).expand(n, -1)]
         if image_indices.shape != (n,):
             raise ValueError(f"image_indices must be [{n}], got {tuple(image_indices.shape)}")
-        return [self.appearance(image_indices.to(device=device, dtype=torch.long))]
+        return [embedding_rows(self.appearance.weight, image_indices.to(device=device, dtype=torch.long))]
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor,
                 image_indices: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,9 +1,11 @@
-"""Row gathers and scatters for the inference renderer: ``src[rows]`` and ``dst[rows] = values``
-in one Warp launch of one thread per 4-byte word (see :mod:`ngp_warp.kernels.gather`).
+"""Row gathers and scatters: ``src[rows]`` and ``dst[rows] = values`` for the inference renderer
+in one Warp launch of one thread per 4-byte word (see :mod:`ngp_warp.kernels.gather`), and
+:func:`embedding_rows`, the differentiable lookup of per-image appearance codes per sample.
 
 torch's own advanced indexing moves narrow rows (a sample's 16 bf16 features, its 12-byte
 position) with one thread per row or per element, well below the memory's bandwidth on a GPU
-(RESULTS.md). No gradient flows through these.
+(RESULTS.md); its embedding backward sorts every index. No gradient flows through
+:func:`gather_rows` and :func:`scatter_rows`.
 """
 
 from __future__ import annotations
@@ -63,3 +65,47 @@ def scatter_rows(dst: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) ->
         return
     _wp.launch(K.scatter_words, rows.shape[0] * words,
                [values.reshape(-1).view(torch.int32), rows, words, dst.reshape(-1).view(torch.int32)], _wp.device_of(dst))
+
+
+RUN = 64  # rows summed per thread in the embedding's backward before its atomic adds
+
+
+class _EmbeddingRows(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, weight: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(rows)
+        ctx.n_weights = weight.shape[0]
+        return gather_rows(weight, rows)
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        (rows,) = ctx.saved_tensors
+        cols = grad_out.shape[1]
+        grad_weight = torch.zeros(ctx.n_weights, cols, dtype=torch.float32, device=grad_out.device)
+        items = -(-rows.shape[0] // RUN) * cols
+        # one CPU thread: Warp's CPU atomics are plain read-modify-writes
+        _wp.launch(K.add_rows_in_runs, items, [grad_out.float().contiguous(), rows, RUN, grad_weight],
+                   _wp.device_of(grad_out), align=items)
+        return grad_weight, None
+
+
+def embedding_rows(weight: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """``weight[rows]`` with its gradient in ``weight``: an embedding lookup (the per-image
+    appearance codes of packed samples) whose backward adds each run of equal indices once per
+    column and chunk of rows, instead of sorting every index as torch's embedding does.
+
+    Args:
+        weight: [N, A] float32, contiguous (A ≥ 1).
+        rows: [K] int64 in [0, N) (not checked: a check would sync), on weight's device; fastest
+            when equal indices come in runs, as the samples of a ray do.
+
+    Returns:
+        [K, A] float32.
+
+    Raises:
+        ValueError: one line, for inputs of the wrong dtype, shape or device.
+    """
+    _check("weight", weight, rows)
+    if weight.dtype != torch.float32 or weight.dim() != 2 or weight.shape[1] < 1 or not weight.is_contiguous():
+        raise ValueError(f"weight must be a contiguous [N, A] float32 tensor, got {weight.dtype} {tuple(weight.shape)}")
+    return _EmbeddingRows.apply(weight, rows)
