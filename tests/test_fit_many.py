@@ -1,6 +1,6 @@
 """ngp-warp fit-many: 3 tiny scenes over 2 gloo ranks (torchrun through --gpus), a rerun that
 skips them, an interrupted scene resumed, two nodes on one host (one of them killed), and bad
-manifests as one line."""
+manifests as one line; two single-GPU nodes where a host has two GPUs."""
 
 import contextlib
 import json
@@ -104,6 +104,44 @@ def test_two_nodes_on_one_host_share_the_scenes_through_the_rendezvous(manifest,
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ranks"] == 2 and sum(r["scenes"] for r in summary["per_rank"]) == 3
     assert all(r["status"] == "trained" and r["steps"] == 3 for r in summary["scenes"])
+
+
+def _single_gpu_nodes(args: list[str], rdzv_id: str) -> list[subprocess.CompletedProcess]:
+    """Run ``ngp-warp ARGS`` as two torchrun nodes of one process each on this host, node i
+    seeing GPU i alone (as on two machines of one GPU), and wait for both."""
+    node = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc-per-node", "1",
+            "--rdzv-backend", "c10d", "--rdzv-endpoint", f"127.0.0.1:{_free_port()}", "--rdzv-id", rdzv_id,
+            "-m", "ngp_warp.cli", *args]
+    nodes = [subprocess.Popen(node, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env={**os.environ, "CUDA_VISIBLE_DEVICES": str(i)}) for i in range(2)]
+    outputs = [p.communicate(timeout=400) for p in nodes]
+    assert [p.returncode for p in nodes] == [0, 0], outputs[0][1][-2000:] + outputs[1][1][-2000:]
+    return [subprocess.CompletedProcess(node, p.returncode, *o) for p, o in zip(nodes, outputs)]
+
+
+@pytest.mark.cuda
+@pytest.mark.slow
+def test_two_single_gpu_nodes_on_one_host_train_one_scene_and_share_many(tmp_path):
+    import torch
+    if torch.cuda.device_count() < 2:
+        pytest.skip("needs two CUDA GPUs")
+    gpu = ["--device", "cuda", "--quiet", "--no-video"]
+    for i, name in enumerate(["chair", "mug", "lamp"]):  # rendered on the GPU: a GPU machine may lack Warp's CPU compiler
+        write_demo_scene(tmp_path / "scenes" / name, width=12, height=12, n_train=4, n_test=1, seed=i, supersample=1,
+                         device="cuda")
+    scene = tmp_path / "scenes" / "chair"
+    done = _single_gpu_nodes(["train", str(scene), "--out", str(tmp_path / "one"), "--steps", "30", *gpu], "train-2x1")
+    metrics = finished_metrics(tmp_path / "one")
+    assert metrics["steps"] == 30 and metrics["device"] == "cuda"
+    assert sum("PSNR" in d.stdout for d in done) == 1  # rank 0 alone evaluates and reports
+
+    out = tmp_path / "many"
+    _single_gpu_nodes(["fit-many", str(tmp_path / "scenes" / "*"), "--out", str(out), "--steps", "20", *gpu],
+                      "fit-many-2x1")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ranks"] == 2 and sorted(r["rank"] for r in summary["per_rank"]) == [0, 1]
+    assert sum(r["scenes"] for r in summary["per_rank"]) == 3
+    assert all(r["status"] == "trained" and r["steps"] == 20 for r in summary["scenes"])
 
 
 def _kill_tree(pid: int) -> None:

@@ -103,7 +103,8 @@ def _scene_description(width, height, n_train, n_test, seed, supersample) -> dic
 
 
 def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100, n_train: int = 50,
-                     n_test: int = 10, seed: int = 0, supersample: int = 3, overwrite: bool = False) -> Path:
+                     n_test: int = 10, seed: int = 0, supersample: int = 3, overwrite: bool = False,
+                     device: str = "cpu") -> Path:
     """Render the demo scene and write it as a NeRF-synthetic folder at ``out_dir``.
 
     Everything is written into a temporary sibling folder that is renamed into place at the end,
@@ -116,6 +117,7 @@ def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100
         seed: turns and jitters the cameras; the same seed gives the same files.
         supersample: each pixel averages ``supersample**2`` rays (anti-aliasing, fractional alpha).
         overwrite: replace an existing ``out_dir``.
+        device: where the views are rendered ("cpu" or "cuda").
 
     Returns:
         The folder written, as a Path.
@@ -126,7 +128,7 @@ def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100
     check_positive_ints(width=width, height=height, n_train=n_train, n_test=n_test, supersample=supersample)
 
     def render(c2w: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
-        return render_demo_views(c2w, intrinsics, width, height, supersample)
+        return render_demo_views(c2w.to(device), intrinsics.to(device), width, height, supersample).cpu()
 
     return write_rendered_scene(out_dir, overwrite, "the demo scene", demo_cameras(n_train, n_test, seed), width,
                                 height, CAMERA_ANGLE_X, render, {},
