@@ -132,7 +132,7 @@ def test_two_single_gpu_nodes_on_one_host_train_one_scene_and_share_many(tmp_pat
     scene = tmp_path / "scenes" / "chair"
     done = _single_gpu_nodes(["train", str(scene), "--out", str(tmp_path / "one"), "--steps", "30", *gpu], "train-2x1")
     metrics = finished_metrics(tmp_path / "one")
-    assert metrics["steps"] == 30 and metrics["device"] == "cuda"
+    assert metrics["steps"] == 30 and metrics["device"].startswith("cuda")
     assert sum("PSNR" in d.stdout for d in done) == 1  # rank 0 alone evaluates and reports
 
     out = tmp_path / "many"
