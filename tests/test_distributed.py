@@ -22,9 +22,14 @@ STEPS = 17  # crosses the grid refresh at step 16, the lr warm-up and the averag
 PIXELS = 128  # the combined batch; each of the 2 ranks trains on one half
 
 
-def tiny_config(**budget) -> TrainConfig:
+CAPTURE = {"distortion_weight": 1e-2, "distortion_spacing": "normalised"}  # with appearance codes: fox's terms
+
+
+def tiny_config(capture: bool = False, **budget) -> TrainConfig:
     return TrainConfig(**budget, target_samples=1 << 12, grid_resolution=16, steps_per_diagonal=128,
-                       field=FieldConfig(n_levels=4, log2_hashmap_size=12, finest_resolution=32.0, hidden=16))
+                       **(CAPTURE if capture else {}),
+                       field=FieldConfig(n_levels=4, log2_hashmap_size=12, finest_resolution=32.0, hidden=16,
+                                         appearance_dim=4 if capture else 0))
 
 
 @pytest.fixture(scope="module")
@@ -35,9 +40,12 @@ def scene_dir(tmp_path_factory):
 
 
 def fixed_batches(trainer: Trainer, rows: slice):
-    """sample_batch replaced: step k's batch is ``rows`` of a fixed PIXELS-pixel batch."""
+    """sample_batch replaced: step k's batch is ``rows`` of a fixed PIXELS-pixel batch (and
+    their images, for the appearance codes)."""
     def sample_batch(_n):
         b = sample_pixels(trainer.train_split, PIXELS, 1000 + trainer.step_count, 1)
+        if trainer.field.appearance is not None:
+            trainer.batch_images = b.pixels[rows, 0].long()
         return b.rays_o[rows], b.rays_d[rows], b.target[rows], b.background[rows]
     return sample_batch
 
@@ -46,14 +54,15 @@ def unjittered_render(trainer: Trainer):
     """The training render without stratified jitter (its offsets depend on the ray's index in
     the batch, which differs between a half and the combined batch)."""
     def render(rays_o, rays_d):
-        phases = trainer.phases
+        phases, cfg = trainer.phases, trainer.config
         return trainer.model.render(rays_o, rays_d, phases.field, sigma_fn=phases.density,
-                                    before_sync=phases.optimizer_update)
+                                    before_sync=phases.optimizer_update, return_samples=cfg.distortion_weight > 0,
+                                    ray_images=trainer.batch_images)
     return render
 
 
-def train_on_fixed_batches(scene_dir, rows: slice, parallel: bool) -> list[torch.Tensor]:
-    trainer = Trainer(load_scene(scene_dir), tiny_config(steps=STEPS), device="cpu")
+def train_on_fixed_batches(scene_dir, rows: slice, parallel: bool, capture: bool = False) -> list[torch.Tensor]:
+    trainer = Trainer(load_scene(scene_dir), tiny_config(capture, steps=STEPS), device="cpu")
     if parallel:
         make_data_parallel(trainer)
     trainer.phases = dataclasses.replace(trainer.phases, sample_batch=fixed_batches(trainer, rows),
@@ -68,7 +77,9 @@ def _rank_main(rank: int, scene_dir, out_dir) -> None:
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{out_dir}/store", rank=rank, world_size=2)
     half = PIXELS // 2
-    results = {"fixed": train_on_fixed_batches(scene_dir, slice(rank * half, (rank + 1) * half), parallel=True)}
+    rows = slice(rank * half, (rank + 1) * half)
+    results = {"fixed": train_on_fixed_batches(scene_dir, rows, parallel=True),
+               "capture": train_on_fixed_batches(scene_dir, rows, parallel=True, capture=True)}
 
     # grid updates: each cell's max over the ranks' densities
     grid = OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=16, levels=2)
@@ -107,6 +118,14 @@ def test_two_ranks_train_as_one_process_on_the_combined_batch(scene_dir, tmp_pat
         for got, want, alone in zip(rank["fixed"], combined, first_half, strict=True):
             torch.testing.assert_close(got, want, rtol=1e-4, atol=2e-5)  # Adam (eps 1e-15) magnifies rounding in tiny gradients
         assert any((a - b).abs().max() > 1e-3 for a, b in zip(rank["fixed"], first_half))
+    # with a capture's terms: appearance codes (their gradients reduced too) and the distortion loss
+    combined = train_on_fixed_batches(scene_dir, slice(0, PIXELS), parallel=False, capture=True)
+    first_half = train_on_fixed_batches(scene_dir, slice(0, PIXELS // 2), parallel=False, capture=True)
+    assert len(combined) == len(ranks[0]["fixed"]) + 1  # the codes
+    for rank in ranks:
+        for got, want in zip(rank["capture"], combined, strict=True):
+            torch.testing.assert_close(got, want, rtol=1e-4, atol=2e-5)
+        assert any((a - b).abs().max() > 1e-3 for a, b in zip(rank["capture"], first_half))
 
     # each cell: max(decay · old, max over the ranks' samples) = the update with the max density
     grid = OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=16, levels=2)
