@@ -32,14 +32,13 @@ def scatter_words(first: int, values: wp.array(dtype=wp.int32), rows: wp.array(d
     dst[word_in_rows(item, words, rows)] = values[item]
 
 
-# grad_weight[rows[i], c] += grad_out[i, c]. Item = chunk·C + c sums column c over the `run`
-# rows of its chunk, one atomic add per run of equal indices in it (samples of one ray share
-# their image, so a chunk of a ray's samples adds once).
+# grad_weight[rows[i], c] += grad_out[i, c], both row-major with C columns. Item = chunk·C + c
+# sums column c over the `run` rows of its chunk, one atomic add per run of equal indices in it
+# (samples of one ray share their image, so a chunk of a ray's samples adds once).
 @wp.kernel
-def add_rows_in_runs(first: int, grad_out: wp.array2d(dtype=float), rows: wp.array(dtype=wp.int64), run: int,
-                     grad_weight: wp.array2d(dtype=float)):
+def add_rows_in_runs(first: int, grad_out: wp.array(dtype=float), rows: wp.array(dtype=wp.int64), cols: int,
+                     run: int, grad_weight: wp.array(dtype=float)):
     item = first + wp.tid()
-    cols = grad_out.shape[1]
     chunk = item // cols
     col = item - chunk * cols
     start = chunk * run
@@ -49,8 +48,8 @@ def add_rows_in_runs(first: int, grad_out: wp.array2d(dtype=float), rows: wp.arr
     for i in range(start, end):
         row = rows[i]
         if row != current:
-            wp.atomic_add(grad_weight, int(current), col, total)
+            wp.atomic_add(grad_weight, int(current) * cols + col, total)
             total = float(0.0)
             current = row
-        total += grad_out[i, col]
-    wp.atomic_add(grad_weight, int(current), col, total)
+        total += grad_out[i * cols + col]
+    wp.atomic_add(grad_weight, int(current) * cols + col, total)

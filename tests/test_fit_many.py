@@ -112,9 +112,14 @@ def _single_gpu_nodes(args: list[str], rdzv_id: str) -> list[subprocess.Complete
     node = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc-per-node", "1",
             "--rdzv-backend", "c10d", "--rdzv-endpoint", f"127.0.0.1:{_free_port()}", "--rdzv-id", rdzv_id,
             "-m", "ngp_warp.cli", *args]
-    nodes = [subprocess.Popen(node, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    nodes = [subprocess.Popen(node, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                               env={**os.environ, "CUDA_VISIBLE_DEVICES": str(i)}) for i in range(2)]
-    outputs = [p.communicate(timeout=400) for p in nodes]
+    try:
+        outputs = [p.communicate(timeout=400) for p in nodes]
+    finally:  # a node that hangs must not outlive the test
+        for p in nodes:
+            _kill_tree(p.pid)
+            p.wait()
     assert [p.returncode for p in nodes] == [0, 0], outputs[0][1][-2000:] + outputs[1][1][-2000:]
     return [subprocess.CompletedProcess(node, p.returncode, *o) for p, o in zip(nodes, outputs)]
 

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from ngp_warp import HashGridEncoding, OccupancyGrid
+from ngp_warp.ops.gather import embedding_rows
 
 
 def _run(monkeypatch, threads: str, fn):
@@ -40,3 +41,15 @@ def test_hash_grid_table_gradient_same_with_two_threads(monkeypatch, levels, fea
     torch.testing.assert_close(one[0], two[0], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(one[1], two[1], rtol=1e-5, atol=1e-6)
     assert one[0].abs().sum() > 0
+
+
+def test_embedding_rows_gradient_same_with_two_threads(monkeypatch):
+    # Enough chunks for two threads, each adding into the same two codes at every change of index.
+    def grads():
+        weight = torch.randn(2, 16, requires_grad=True)
+        rows = torch.randint(0, 2, (200000,))
+        (embedding_rows(weight, rows) * torch.randn(200000, 16)).sum().backward()
+        return weight.grad.clone()
+
+    one, two = _run(monkeypatch, "1", grads), _run(monkeypatch, "2", grads)
+    assert torch.equal(one, two) and one.abs().sum() > 0

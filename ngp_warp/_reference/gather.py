@@ -17,5 +17,6 @@ def scatter_rows(dst: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) ->
 
 
 def embedding_rows(weight: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """``weight[rows]``, row by row, differentiable in ``weight`` through autograd."""
+    """``weight[rows]``: weight [N, A] float64, rows [K] int64 → [K, A] float64, row by row,
+    differentiable in ``weight`` through autograd."""
     return torch.stack([weight[int(r)] for r in rows]) if len(rows) else weight[:0] * 1

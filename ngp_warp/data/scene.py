@@ -114,7 +114,7 @@ def write_demo_scene(out_dir: str | Path, *, width: int = 100, height: int = 100
         out_dir: folder to create; it must not exist unless ``overwrite``.
         width, height: image size in pixels (small by default: the CPU demo trains in minutes).
         n_train, n_test: number of train and test views.
-        seed: turns and jitters the cameras; the same seed gives the same files.
+        seed: turns and jitters the cameras; the same seed gives the same files on the same device.
         supersample: each pixel averages ``supersample**2`` rays (anti-aliasing, fractional alpha).
         overwrite: replace an existing ``out_dir``.
         device: where the views are rendered ("cpu" or "cuda").

@@ -15,6 +15,7 @@ import math
 import torch
 
 from ngp_warp import _wp
+from ngp_warp.ops._differentiable_once import refuse_second_derivative
 from ngp_warp.kernels import gather as K
 
 _MAX_WORDS = 2**31 - 1  # Warp indexes with int32
@@ -71,6 +72,10 @@ RUN = 64  # rows summed per thread in the embedding's backward before its atomic
 
 
 class _EmbeddingRows(torch.autograd.Function):
+    """weight [N, A] float32, rows [K] int64 → weight[rows] [K, A]; the backward adds the incoming
+    [K, A] gradient into [N, A] (:func:`ngp_warp.kernels.gather.add_rows_in_runs`), once
+    differentiable."""
+
     @staticmethod
     def forward(ctx, weight: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(rows)
@@ -81,31 +86,36 @@ class _EmbeddingRows(torch.autograd.Function):
     def backward(ctx, grad_out: torch.Tensor):
         (rows,) = ctx.saved_tensors
         cols = grad_out.shape[1]
-        grad_weight = torch.zeros(ctx.n_weights, cols, dtype=torch.float32, device=grad_out.device)
+        grad_weight = torch.zeros(ctx.n_weights * cols, dtype=torch.float32, device=grad_out.device)
         items = -(-rows.shape[0] // RUN) * cols
         # one CPU thread: Warp's CPU atomics are plain read-modify-writes
-        _wp.launch(K.add_rows_in_runs, items, [grad_out.float().contiguous(), rows, RUN, grad_weight],
+        _wp.launch(K.add_rows_in_runs, items, [grad_out.float().contiguous().view(-1), rows, cols, RUN, grad_weight],
                    _wp.device_of(grad_out), align=items)
-        return grad_weight, None
+        return refuse_second_derivative("embedding_rows", (grad_weight.view(ctx.n_weights, cols),), (grad_out,))[0], None
 
 
 def embedding_rows(weight: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     """``weight[rows]`` with its gradient in ``weight``: an embedding lookup (the per-image
     appearance codes of packed samples) whose backward adds each run of equal indices once per
     column and chunk of rows, instead of sorting every index as torch's embedding does.
+    Differentiable once (a second derivative through it raises).
 
     Args:
         weight: [N, A] float32, contiguous (A ≥ 1).
-        rows: [K] int64 in [0, N) (not checked: a check would sync), on weight's device; fastest
-            when equal indices come in runs, as the samples of a ray do.
+        rows: [K] int64 in [0, N), on weight's device; fastest when equal indices come in runs,
+            as the samples of a ray do. Checked on the CPU; on CUDA not (a check would sync the
+            device), where an index out of range reads and writes out of bounds.
 
     Returns:
         [K, A] float32.
 
     Raises:
-        ValueError: one line, for inputs of the wrong dtype, shape or device.
+        ValueError: one line, for inputs of the wrong dtype, shape or device, or (CPU) an index
+            out of range.
     """
     _check("weight", weight, rows)
     if weight.dtype != torch.float32 or weight.dim() != 2 or weight.shape[1] < 1 or not weight.is_contiguous():
         raise ValueError(f"weight must be a contiguous [N, A] float32 tensor, got {weight.dtype} {tuple(weight.shape)}")
+    if rows.device.type == "cpu" and rows.numel() and not 0 <= int(rows.min()) <= int(rows.max()) < weight.shape[0]:
+        raise ValueError(f"rows must lie in [0, {weight.shape[0]}), got {int(rows.min())} to {int(rows.max())}")
     return _EmbeddingRows.apply(weight, rows)
