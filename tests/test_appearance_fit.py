@@ -117,11 +117,17 @@ def test_evaluation_scores_the_right_half_with_the_fitted_code(trained, tmp_path
         assert record["psnr"] == pytest.approx(psnr(right_half(out["rgb"]), right_half(gt)), abs=1e-9)
         assert record["psnr_mean_code"] == pytest.approx(psnr(mean_out["rgb"], gt), abs=1e-9)
         assert record["psnr_nearest_code"] == pytest.approx(psnr(near_out["rgb"], gt), abs=1e-9)
+        half = gt.shape[1] // 2
+        assert record["psnr_nearest_code_left"] == pytest.approx(psnr(near_out["rgb"][:, :half], gt[:, :half]), abs=1e-9)
+        assert record["psnr_nearest_code_right"] == pytest.approx(psnr(near_out["rgb"][:, half:], gt[:, half:]),
+                                                                  abs=1e-9)
+        assert record["psnr_nearest_code_left"] != record["psnr_nearest_code_right"]
         assert not torch.equal(near_out["rgb"], mean_out["rgb"])  # another code than the mean
         assert "appearance_code" not in mean_out
         written = torch.from_numpy(iio.imread(tmp_path / "renders" / f"{Path(name).stem}.png"))
         assert torch.equal(written, torch.from_numpy(to_uint8(out["rgb"])))
-    assert metrics["psnr_mean_code"] == pytest.approx(sum(m["psnr_mean_code"] for m in metrics["per_image"]) / 2)
+    for key in ("psnr_mean_code", "psnr_nearest_code_left", "psnr_nearest_code_right"):
+        assert metrics[key] == pytest.approx(sum(m[key] for m in metrics["per_image"]) / 2)
     assert metrics["ssim"] is not None  # the right half (24 x 12) holds an SSIM window
 
 

@@ -117,15 +117,26 @@ def _scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[dict, str]:
     return {"psnr": psnr(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
 
 
+NEAREST_CODE_KEYS = ("psnr_nearest_code", "psnr_nearest_code_left", "psnr_nearest_code_right")
+
+
+def _nearest_code_scores(rgb: torch.Tensor, gt: torch.Tensor) -> dict:
+    """PSNR of a view rendered with the nearest training camera's code ([H, W, 3] float32 each):
+    the whole image, its left half (columns < W // 2) and its right half (:func:`right_half`)."""
+    left = rgb[:, : rgb.shape[1] // 2], gt[:, : gt.shape[1] // 2]
+    return dict(zip(NEAREST_CODE_KEYS, (psnr(rgb, gt), psnr(*left), psnr(right_half(rgb), right_half(gt)))))
+
+
 def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
     """Render every test view, score it, write renders/ depth/ and metrics.json.
 
     With per-image appearance codes a test view has no code of its own: it is rendered with the
     code fitted on the left half of its image and scored (psnr, ssim, lpips) on the right half,
     which the fit did not see, as nerfstudio does. Its whole image is scored twice: with the
-    code of the nearest training camera (``psnr_nearest_code``) and with the mean training code
-    (``psnr_mean_code``); metrics.json's ``appearance`` says so. renders/ holds the fitted code's
-    whole images."""
+    code of the nearest training camera (``psnr_nearest_code``; its left and right halves too,
+    ``psnr_nearest_code_left`` and ``_right``, so that the right half shows what the fitted code
+    gains over the nearest one) and with the mean training code (``psnr_mean_code``);
+    metrics.json's ``appearance`` says so. renders/ holds the fitted code's whole images."""
     out_dir = Path(out_dir)
     fitted = trainer.field.appearance is not None
     views = iter_test_renders(trainer, fit_appearance=fitted)
@@ -140,7 +151,7 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
             if fitted:
                 scores, lpips_note = _scores(right_half(out["rgb"]), right_half(gt))
                 scores["psnr_mean_code"] = psnr(whole[0][1]["rgb"], gt)
-                scores["psnr_nearest_code"] = psnr(whole[1][1]["rgb"], gt)
+                scores.update(_nearest_code_scores(whole[1][1]["rgb"], gt))
             else:
                 scores, lpips_note = _scores(out["rgb"], gt)
             per_image.append({"image": name, **scores})
@@ -152,8 +163,9 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     posed = " and pose" if trainer.cameras is not None else ""
     appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations), scored on "
                                 f"the right half; whole images with the nearest training camera's code "
-                                f"(psnr_nearest_code) and the mean code (psnr_mean_code)",
-                  **{key: float(np.mean([m[key] for m in per_image])) for key in ("psnr_nearest_code", "psnr_mean_code")}
+                                f"(psnr_nearest_code, its halves psnr_nearest_code_left and _right) and the mean "
+                                f"code (psnr_mean_code)",
+                  **{key: float(np.mean([m[key] for m in per_image])) for key in NEAREST_CODE_KEYS + ("psnr_mean_code",)}
                   } if fitted else {}
     metrics = {
         "psnr": float(np.mean([m["psnr"] for m in per_image])),
