@@ -72,15 +72,16 @@ def training_table(rows: list[dict], target: float) -> str:
     return "\n".join(lines)
 
 
-def write_scenes(folder: Path, count: int) -> Path:
-    """``count`` demo scenes of unequal size under ``folder`` (generated once); the glob of them."""
+def write_scenes(folder: Path, count: int, device: str) -> Path:
+    """``count`` demo scenes of unequal size under ``folder`` (generated once, rendered on
+    ``device``); the glob of them."""
     from ngp_warp.data.scene import write_demo_scene
 
     for k in range(count):
         scene = folder / f"scene{k:02d}"
         if not scene.exists():
             write_demo_scene(scene, width=48 + 48 * (k % 2), height=48 + 48 * (k % 2), n_train=12 + 12 * (k % 4),
-                             n_test=2, seed=k, supersample=1)
+                             n_test=2, seed=k, supersample=1, device=device)
     return folder / "scene*"
 
 
@@ -119,7 +120,7 @@ def main() -> None:
     if rows:
         print(training_table(rows, args.target))
     if args.fit_many:
-        pattern = write_scenes(args.out / "scenes", args.fit_many)
+        pattern = write_scenes(args.out / "scenes", args.fit_many, args.device)
         print("\n" + fit_many_table(pattern, args.out / "fit-many", gpus_list, args.fit_many_steps, args.device))
     (args.out / "scaling.json").write_text(json.dumps(rows, indent=1))
 
