@@ -1,7 +1,7 @@
 """Which appearance code suits a held-out view: one trained run's test views rendered with
 several codes and scored on the whole image and on each half.
 
-    python benchmarks/code_choice.py RUN_DIR [--scene SCENE_DIR]
+    python benchmarks/code_choice.py RUN_DIR [--device DEVICE]
 
 Codes: the nearest training camera's (what metrics.json's ``psnr_nearest_code`` uses), the mean
 of the two nearest, the three nearest weighted by inverse distance, the mean of all training
@@ -14,15 +14,17 @@ limits the whole image; the field is. Prints a table: per view and the mean (PSN
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ngp_warp.outputs.evaluate import composite_on
 from ngp_warp.outputs.metrics import psnr
 from ngp_warp.training.appearance_fit import fit_appearance_code, right_half
-from ngp_warp.training.checkpoint import CheckpointError, load_trainer
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fit_study import held_out_views, trainer_or_usage_error  # noqa: E402
 
 CHOICES = ("nearest", "two nearest", "three nearest, 1/d", "mean", "fitted on the left half")
 
@@ -45,23 +47,15 @@ def view_scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[float, float, floa
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("run", type=Path, help="a finished run's folder (its checkpoint.pt)")
-    parser.add_argument("--scene", type=Path, help="the scene folder, where it moved since training")
+    parser.add_argument("run", help="a finished run's folder (its checkpoint.pt)")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args()
-    try:
-        trainer, _ = load_trainer(args.run / "checkpoint.pt", scene_path=args.scene)
-    except CheckpointError as e:
-        raise SystemExit(f"code_choice: {e}") from None
-    if trainer.field.appearance is None:
-        raise SystemExit("code_choice: this run trained no appearance codes")
+    trainer = trainer_or_usage_error(parser, args.run, args.device, need_codes=True)
     codes = trainer.field.appearance.weight.detach()
     centres = trainer.train_split.c2w[:, :, 3].to(codes.device)
-    split, white = trainer.scene.test, torch.ones(3, device=trainer.device)
     background = trainer.view_background
     rows = []
-    for i, name in enumerate(split.names):
-        camera = split.camera(i)
-        gt = composite_on(split.images[i].to(trainer.device), white)
+    for name, camera, gt in held_out_views(trainer):
         choices = candidate_codes(codes, centres, camera["c2w"][:3, 3].to(centres))
         choices.append(fit_appearance_code(trainer, **camera, image=gt, background=background))
         scores = [view_scores(trainer.render_image(**camera, background=background, appearance_code=code)["rgb"], gt)

@@ -41,6 +41,15 @@ def trainer_or_usage_error(ap: argparse.ArgumentParser, run: str, device: str, n
     return trainer
 
 
+def held_out_views(trainer):
+    """Yield ``(name, camera, ground truth)`` for every test view of ``trainer``'s scene: the
+    camera as :meth:`Split.camera` gives it, the image [H, W, 3] float32 composited on white on
+    the trainer's device (as the evaluation scores it)."""
+    split, white = trainer.scene.test, torch.ones(3, device=trainer.device)
+    for i, name in enumerate(split.names):
+        yield name, split.camera(i), composite_on(split.images[i].to(trainer.device), white)
+
+
 def _parse_fit(spec: str) -> tuple[int, float, int, bool]:
     parts = spec.split(":")
     if len(parts) not in (3, 4) or (len(parts) == 4 and parts[3] != "pose"):
@@ -59,12 +68,9 @@ def main() -> None:
     except ValueError:
         ap.error(f"--fit takes ITERATIONS:LR:SEED[:pose], got {' '.join(args.fit)}")
     trainer = trainer_or_usage_error(ap, args.run, args.device, need_codes=True)
-    split, white = trainer.scene.test, torch.ones(3, device=trainer.device)
     background = trainer.view_background
     rows = []
-    for i, name in enumerate(split.names):
-        camera = split.camera(i)
-        gt = composite_on(split.images[i].to(trainer.device), white)
+    for name, camera, gt in held_out_views(trainer):
         scores = []
         for iterations, lr, seed, pose in fits:
             fit = dict(image=gt, background=background, iterations=iterations, lr=lr, seed=seed)
