@@ -117,6 +117,24 @@ def new_trainer(scene, config, device: str):
         raise UserError(f"--set: {e}") from None
 
 
+def _new_probed_trainer(scene, config, device: str, data_parallel: bool):
+    """:func:`new_trainer`, its ``contraction_fit`` "probe" decided by a short training (one line
+    on stderr says what it saw); UserError for the probe with data-parallel training."""
+    from ngp_warp.training.contraction_probe import probed_trainer
+    from ngp_warp.training.scene_defaults import PROBE_FIT
+
+    if data_parallel and config is not None and config.contraction_fit == PROBE_FIT:
+        raise UserError("--set contraction_fit=probe: not supported with data-parallel training (--gpus > 1)")
+    trainer, probe = probed_trainer(scene, config, device, make_trainer=new_trainer)
+    if probe is not None:
+        box = "the cameras see" if probe.fit == "seen" else "holding the cameras"
+        saw = ("the budget is too short for a probe" if probe.share is None else
+               f"{probe.share:.2f} of the density inside the box the cameras see after {probe.steps} steps "
+               f"({probe.seconds:.1f} s)")
+        print(f"contraction_fit=probe: {saw}: training with the box {box} ({probe.fit})", file=sys.stderr)
+    return trainer
+
+
 def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
     """Train (or resume), checkpoint, evaluate and render into ``out`` (a folder of one run:
     :class:`ngp_warp.training.run_folder.RunFolder`)."""
@@ -158,7 +176,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         downscale = record["downscale"]
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
-        trainer = new_trainer(scene, config, device)
+        trainer = _new_probed_trainer(scene, config, device, getattr(args, "data_parallel", False))
     if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
         from ngp_warp.training.distributed import is_main_rank, make_data_parallel
 

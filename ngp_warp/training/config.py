@@ -11,8 +11,9 @@ from ngp_warp._checks import check_numbers
 from ngp_warp.data.loading import Scene
 from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, FieldConfig
 from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
-from ngp_warp.training.scene_defaults import (CONTRACTION_FITS, appearance_dim, choose_aabb_scale, choose_contraction,
-                                             cone_steps, contraction_box, distortion_weight, occupancy_threshold)
+from ngp_warp.training.scene_defaults import (CONTRACTION_FITS, PROBE_FIT, appearance_dim, choose_aabb_scale,
+                                             choose_contraction, cone_steps, contraction_box, distortion_weight,
+                                             occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
 
 AABB_SCALES = tuple(2**k for k in range(MAX_AABB_SCALE.bit_length()))  # field boxes of 1 ... 2^15 unit cubes
@@ -40,7 +41,8 @@ class TrainConfig:
     contraction: str | None = "auto"    # "l2" | "linf" | None: unbounded space contracted (mip-NeRF 360,
                                         # nerfstudio's L∞); "auto": the scene's (scene_defaults)
     contraction_fit: str = "cameras"    # with a contraction, its inner box holds every camera ("cameras")
-                                        # or what the median camera sees at the centre ("seen")
+                                        # or what the median camera sees at the centre ("seen"); "probe":
+                                        # either, by a short training (training.contraction_probe)
     aabb_scale: int | str | None = "auto"  # the field's box, instant-ngp's aabb_scale (a power of two);
                                         # None: the scene files'; "auto": per scene (scene_defaults)
     early_stop_eps: float = 1e-4
@@ -75,7 +77,7 @@ class TrainConfig:
         """Raise ValueError naming the first setting outside its range (None is left to the
         device), the field's sizes included."""
         choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4),
-                   "contraction": ("auto", None, *CONTRACTIONS), "contraction_fit": CONTRACTION_FITS,
+                   "contraction": ("auto", None, *CONTRACTIONS), "contraction_fit": (*CONTRACTION_FITS, PROBE_FIT),
                    "distortion_spacing": ("world", "normalised")}
         for name, allowed in choices.items():
             value = getattr(self, name)
@@ -248,6 +250,9 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     config.check()
     config = device_defaults(config, device_type)
     kind = choose_contraction(config.contraction, scene)
+    if kind is not None and config.contraction_fit == PROBE_FIT:
+        raise ValueError("contraction_fit 'probe' is decided by training: build the trainer with "
+                         "ngp_warp.training.contraction_probe.probed_trainer (the CLI does)")
     aabb_scale = choose_aabb_scale(config.aabb_scale, scene, kind)
     scene = scene.with_aabb_scale(aabb_scale)
     cone = cone_steps(scene, kind)[0] if config.cone_angle is None else config.cone_angle

@@ -11,7 +11,9 @@
   (:func:`plain_backdrop`), else none. Its inner box is the finest cascade's box, grown about
   its centre to hold every training camera (``contraction_fit`` "seen": to what the median
   camera sees, which suits an object before a distant backdrop and costs a scene with content
-  all around, RESULTS.md); the field learns the colour at infinity (``FieldConfig.environment``).
+  all around, RESULTS.md; "probe": either, chosen by a short training,
+  :mod:`ngp_warp.training.contraction_probe`); the field learns the colour at infinity
+  (``FieldConfig.environment``).
 * Field box: a COLMAP capture of an object on a plain backdrop that trains bounded gets the box
   its cameras see (:func:`choose_aabb_scale`), not the one holding its cameras.
 * Occupancy threshold: instant-ngp's 0.01 (optical thickness of one step) on NeRF-synthetic
@@ -50,6 +52,7 @@ _MIN_INWARD = 0.8  # mean cosine between a camera's view axis and its direction 
 _BACKDROP_SHARE = 0.98  # share of the images' edge pixels within _BACKDROP_TOLERANCE of one colour
 _BACKDROP_TOLERANCE = 8  # in 8-bit levels, per channel
 CONTRACTION_FITS = ("cameras", "seen")  # what the contraction's inner box is grown to hold
+PROBE_FIT = "probe"  # either, picked by a short training (ngp_warp.training.contraction_probe)
 
 
 def cone_steps(scene: Scene, contraction: str | None) -> tuple[float, float, float]:

@@ -1,0 +1,112 @@
+"""A contracted capture's inner box chosen by training: ``contraction_fit="probe"``.
+
+The contraction's inner box can hold every training camera (``"cameras"``) or only what the
+median camera sees at the centre (``"seen"``, :func:`~ngp_warp.training.scene_defaults.contraction_box`).
+``"seen"`` suits an object before a backdrop at infinity (lego over an environment: 32.5 against
+30.0 dB at 60 s on an H100) and costs a scene with content around its cameras (the unbounded
+scene: 30.8 against 31.5), and the cameras and images alone do not tell the two apart
+(benchmarks/NOTES.md, entries 45 and 49). Training does: started with ``"seen"``, an object keeps
+its density inside the inner box (its backdrop is the field's learned environment), while a
+scene around its cameras puts a share of it outside. After 800 steps on 2 CPU cores
+(benchmarks/RESULTS.md, ``inner_density.py``) the share of the occupancy grid's density inside
+the box was 0.89–0.95 for the two objects and 0.63–0.68 for the unbounded scene and the room.
+
+So the probe trains with ``"seen"`` for :data:`PROBE_STEPS` steps (at most a tenth of the budget)
+and keeps that trainer when the share reaches :data:`PROBE_SHARE`; otherwise it starts again with
+``"cameras"`` on the rest of the budget (the probe's steps and seconds count as spent). A budget
+whose tenth is under :data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe (or
+after one that ran out of seconds first). Opt-in until GPU runs of the capture benchmark judge it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import torch
+
+from ngp_warp.data.loading import Scene
+from ngp_warp.ops.occupancy import OccupancyGrid
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.training.scene_defaults import PROBE_FIT, choose_contraction
+from ngp_warp.training.trainer import Trainer
+
+PROBE_STEPS = 800
+PROBE_MIN_STEPS = 400  # fewer cannot tell (at 200 steps the objects' shares were 0.50 and 0.80)
+PROBE_BUDGET_SHARE = 0.1  # the probe takes at most this share of the run's steps or seconds
+PROBE_SHARE = 0.78  # between 0.68 (scenes around their cameras) and 0.82 (objects from 400 steps on)
+
+
+@dataclasses.dataclass
+class ProbeResult:
+    """What the probe saw: the density share inside the ``"seen"`` box after ``steps`` steps
+    (``seconds`` of training; None and 0 where the budget is too short for
+    :data:`PROBE_MIN_STEPS`), and the inner box it chose (``"seen"`` or ``"cameras"``)."""
+
+    share: float | None
+    steps: int
+    seconds: float
+    fit: str
+
+
+def density_share_inside(grid: OccupancyGrid) -> float:
+    """The share of a contracted grid's density estimate (``occs`` ≥ 0; -1 marks unseen cells)
+    in the cells whose centre lies in the inner box, [-1, 1]³ of the grid's [-2, 2]³. One host
+    synchronisation."""
+    if grid.contraction is None or grid.levels != 1:
+        raise ValueError("density_share_inside needs a contracted grid (one cascade)")
+    r = grid.resolution
+    axis = (torch.arange(r, device=grid.occs.device, dtype=torch.float32) + 0.5) * (4.0 / r) - 2.0
+    inside_axis = axis.abs() <= 1.0
+    inside = (inside_axis[:, None, None] & inside_axis[None, :, None] & inside_axis[None, None, :]).reshape(-1)
+    density = grid.occs.clamp_min(0)
+    total = float(density.sum())
+    return float((density * inside).sum()) / total if total > 0 else 0.0
+
+
+def _probe_length(config: TrainConfig) -> tuple[int, float | None]:
+    """(steps, seconds or None) the probe may take of ``config``'s budget."""
+    steps, seconds = config.budget()
+    n = PROBE_STEPS if steps is None else min(PROBE_STEPS, int(steps * PROBE_BUDGET_SHARE))
+    return n, None if seconds is None else seconds * PROBE_BUDGET_SHARE
+
+
+def _spend(trainer: Trainer, steps: int, seconds: float) -> None:
+    """Take the probe's ``steps`` and ``seconds`` off ``trainer``'s budget (its config)."""
+    budget_steps, budget_seconds = trainer.config.budget()
+    if budget_steps is not None:
+        trainer.config.steps = max(budget_steps - steps, 0)
+    if budget_seconds is not None:
+        trainer.config.seconds = max(budget_seconds - seconds, 1e-9)
+
+
+def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None = None,
+                   make_trainer: Callable[[Scene, TrainConfig, str | None], Trainer] = Trainer
+                   ) -> tuple[Trainer, ProbeResult | None]:
+    """A trainer for ``scene`` whose config's ``contraction_fit`` "probe" has been decided (see
+    the module docstring), ready for :meth:`Trainer.train` on the rest of the budget; other
+    settings as ``make_trainer(scene, config, device)``. Returns the trainer and what the probe
+    saw (None when no probe ran: another ``contraction_fit``, or a scene that trains bounded)."""
+    config = config or TrainConfig()
+    if config.contraction_fit != PROBE_FIT:
+        return make_trainer(scene, config, device), None
+    cameras = dataclasses.replace(config, contraction_fit="cameras")
+    if choose_contraction(config.contraction, scene) is None:
+        return make_trainer(scene, cameras, device), None
+    steps, seconds = _probe_length(config)
+    if steps < PROBE_MIN_STEPS:  # too short a run to tell: the box holding the cameras
+        return make_trainer(scene, cameras, device), ProbeResult(None, 0, 0.0, "cameras")
+    trainer = make_trainer(scene, dataclasses.replace(config, contraction_fit="seen"), device)
+    total_steps, total_seconds = trainer.config.budget()
+    while trainer.step_count < steps and (seconds is None or trainer.train_seconds < seconds):
+        trainer.step(max(trainer.step_count / total_steps if total_steps else 0.0,
+                         trainer.train_seconds / total_seconds if total_seconds else 0.0))
+    trainer.flush()
+    share = density_share_inside(trainer.grid)
+    spent_steps, spent_seconds = trainer.step_count, trainer.train_seconds
+    if share < PROBE_SHARE or spent_steps < PROBE_MIN_STEPS:
+        del trainer
+        trainer = make_trainer(scene, cameras, device)
+        trainer.train_seconds = spent_seconds  # the probe's seconds count as training
+    _spend(trainer, spent_steps, spent_seconds)
+    return trainer, ProbeResult(share, spent_steps, spent_seconds, trainer.config.contraction_fit)

@@ -1,0 +1,89 @@
+"""contraction_fit "probe": the density share inside a contracted grid's inner box, and the probe
+that keeps the box the cameras see or starts again with the box holding them, on the budget left."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+from ngp_warp.cli.common import UserError, _new_probed_trainer
+from ngp_warp.data.loading import load_scene
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.ops.occupancy import OccupancyGrid
+from ngp_warp.training import contraction_probe as probe
+from ngp_warp.training.config import TrainConfig, cpu_sizes
+from ngp_warp.training.trainer import Trainer
+
+_spec = importlib.util.spec_from_file_location("capture_scenes",
+                                               Path(__file__).parents[1] / "benchmarks" / "capture_scenes.py")
+capture_scenes = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(capture_scenes)
+
+SMALL = {"target_samples": 1 << 10, "grid_resolution": 16}
+
+
+def small(**settings) -> TrainConfig:
+    """A config of a small batch, grid and field, with ``settings``."""
+    config = cpu_sizes(TrainConfig(**settings))
+    config.target_samples, config.grid_resolution = SMALL["target_samples"], SMALL["grid_resolution"]
+    config.field.log2_hashmap_size, config.field.n_levels, config.field.hidden = 12, 4, 16
+    return config
+
+
+@pytest.fixture(scope="module")
+def sky(tmp_path_factory):
+    """The demo object over the environment at infinity as a COLMAP model: a contracted capture."""
+    root = tmp_path_factory.mktemp("probe")
+    demo = write_demo_scene(root / "demo", width=24, height=24, n_train=14, n_test=4, supersample=2)
+    return load_scene(capture_scenes.write_capture(demo, root / "sky", "colmap-sky"))
+
+
+def test_density_share_inside_counts_the_cells_whose_centre_lies_in_the_inner_box():
+    grid = OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=8, contraction="l2")
+    occs = torch.full((8, 8, 8), -1.0)  # cells of 0.5 over [-2, 2]: indices 2..5 lie inside [-1, 1]
+    occs[2, 2, 2], occs[5, 3, 4] = 3.0, 1.0  # inside
+    occs[6, 3, 3], occs[0, 7, 0] = 4.0, 0.0  # outside (centre x = 1.25; no density)
+    grid.occs.copy_(occs.reshape(-1))
+    assert probe.density_share_inside(grid) == pytest.approx(0.5)
+    grid.occs.fill_(-1.0)
+    assert probe.density_share_inside(grid) == 0.0  # nothing seen yet
+    with pytest.raises(ValueError, match="contracted grid"):
+        probe.density_share_inside(OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=8))
+
+
+@pytest.mark.parametrize("threshold, kept", [(-1.0, "seen"), (2.0, "cameras")])
+def test_the_probe_keeps_the_seen_box_or_starts_again_on_the_budget_left(sky, monkeypatch, threshold, kept):
+    monkeypatch.setattr(probe, "PROBE_STEPS", 6)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_SHARE", threshold)
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.2)
+    trainer, seen = probe.probed_trainer(sky, small(steps=30, contraction_fit="probe"), "cpu")
+    assert seen.steps == 6 and seen.fit == kept == trainer.config.contraction_fit
+    assert 0.0 <= seen.share <= 1.0 and seen.seconds > 0
+    assert trainer.config.steps == 24  # the probe's steps are spent
+    assert trainer.step_count == (6 if kept == "seen" else 0)
+    assert trainer.train_seconds == pytest.approx(seen.seconds)  # and its seconds count as training
+    inner = Trainer(sky, small(steps=1, contraction_fit=kept), device="cpu").grid.inner_aabb_host
+    assert trainer.grid.inner_aabb_host == pytest.approx(inner)
+    trainer.train(show_progress=False)
+    assert trainer.step_count == (30 if kept == "seen" else 24)
+
+
+def test_a_budget_too_short_to_tell_trains_with_the_box_holding_the_cameras(sky):
+    trainer, seen = probe.probed_trainer(sky, TrainConfig(steps=100, contraction_fit="probe", **SMALL), "cpu")
+    assert seen.share is None and seen.steps == 0 and trainer.config.contraction_fit == "cameras"
+    assert trainer.config.steps == 100 and trainer.step_count == 0
+
+
+def test_the_probe_is_left_out_where_nothing_is_contracted(sky):
+    trainer, seen = probe.probed_trainer(sky, TrainConfig(steps=5, contraction=None, contraction_fit="probe", **SMALL),
+                                         "cpu")
+    assert seen is None and trainer.config.contraction is None
+
+
+def test_probe_needs_the_probed_trainer_and_one_gpu(sky):
+    with pytest.raises(ValueError, match="decided by training"):
+        Trainer(sky, TrainConfig(steps=1, contraction_fit="probe", **SMALL), device="cpu")
+    with pytest.raises(UserError, match="not supported with data-parallel"):
+        _new_probed_trainer(sky, TrainConfig(steps=1, contraction_fit="probe", **SMALL), "cpu", data_parallel=True)
