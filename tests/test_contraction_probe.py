@@ -61,13 +61,23 @@ def test_the_probe_keeps_the_seen_box_or_starts_again_on_the_budget_left(sky, mo
     trainer, seen = probe.probed_trainer(sky, small(steps=30, contraction_fit="probe"), "cpu")
     assert seen.steps == 6 and seen.fit == kept == trainer.config.contraction_fit
     assert 0.0 <= seen.share <= 1.0 and seen.seconds > 0
-    assert trainer.config.steps == 24  # the probe's steps are spent
-    assert trainer.step_count == (6 if kept == "seen" else 0)
-    assert trainer.train_seconds == pytest.approx(seen.seconds)  # and its seconds count as training
+    # the kept model's steps include the probe's; a new model takes the whole step budget
+    assert (trainer.step_count, trainer.config.steps) == ((6, 24) if kept == "seen" else (0, 30))
+    assert trainer.train_seconds == pytest.approx(seen.seconds)  # the probe's seconds count
     inner = Trainer(sky, small(steps=1, contraction_fit=kept), device="cpu").grid.inner_aabb_host
     assert trainer.grid.inner_aabb_host == pytest.approx(inner)
     trainer.train(show_progress=False)
-    assert trainer.step_count == (30 if kept == "seen" else 24)
+    assert trainer.step_count == 30
+
+
+def test_a_probe_out_of_seconds_starts_again_on_the_seconds_left(sky, monkeypatch):
+    monkeypatch.setattr(probe, "PROBE_STEPS", 10**6)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 10**5)  # never reached within the probe's 0.2 s
+    trainer, seen = probe.probed_trainer(sky, small(seconds=2.0, contraction_fit="probe"), "cpu")
+    assert seen.fit == trainer.config.contraction_fit == "cameras" and seen.steps >= 1
+    assert 0.2 <= seen.seconds < 2.0 and trainer.step_count == 0
+    assert trainer.train_seconds == pytest.approx(seen.seconds)
+    assert trainer.config.seconds == pytest.approx(2.0 - seen.seconds)
 
 
 def test_a_budget_too_short_to_tell_trains_with_the_box_holding_the_cameras(sky):
@@ -83,7 +93,7 @@ def test_the_probe_is_left_out_where_nothing_is_contracted(sky):
 
 
 def test_probe_needs_the_probed_trainer_and_one_gpu(sky):
-    with pytest.raises(ValueError, match="decided by training"):
+    with pytest.raises(ValueError, match="decided by a short training"):
         Trainer(sky, TrainConfig(steps=1, contraction_fit="probe", **SMALL), device="cpu")
     with pytest.raises(UserError, match="not supported with data-parallel"):
         _new_probed_trainer(sky, TrainConfig(steps=1, contraction_fit="probe", **SMALL), "cpu", data_parallel=True)

@@ -251,8 +251,9 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     config = device_defaults(config, device_type)
     kind = choose_contraction(config.contraction, scene)
     if kind is not None and config.contraction_fit == PROBE_FIT:
-        raise ValueError("contraction_fit 'probe' is decided by training: build the trainer with "
-                         "ngp_warp.training.contraction_probe.probed_trainer (the CLI does)")
+        raise ValueError("contraction_fit 'probe' is decided by a short training, which ngp-warp train, demo "
+                         "and fit-many run (ngp_warp.training.contraction_probe.probed_trainer); here use "
+                         "'cameras' or 'seen'")
     aabb_scale = choose_aabb_scale(config.aabb_scale, scene, kind)
     scene = scene.with_aabb_scale(aabb_scale)
     cone = cone_steps(scene, kind)[0] if config.cone_angle is None else config.cone_angle

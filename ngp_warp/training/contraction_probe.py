@@ -11,16 +11,22 @@ scene around its cameras puts a share of it outside. After 800 steps on 2 CPU co
 (benchmarks/RESULTS.md, ``inner_density.py``) the share of the occupancy grid's density inside
 the box was 0.89–0.95 for the two objects and 0.63–0.68 for the unbounded scene and the room.
 
+(``inner_density.py`` runs its own learning-rate schedule over 1200 steps; the probe itself, at
+the schedule of an 8000-step run, saw 0.95 and 0.65 on the demo object and the unbounded scene.)
+
 So the probe trains with ``"seen"`` for :data:`PROBE_STEPS` steps (at most a tenth of the budget)
-and keeps that trainer when the share reaches :data:`PROBE_SHARE`; otherwise it starts again with
-``"cameras"`` on the rest of the budget (the probe's steps and seconds count as spent). A budget
-whose tenth is under :data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe (or
-after one that ran out of seconds first). Opt-in until GPU runs of the capture benchmark judge it.
+and keeps that trainer, whose steps and seconds count in the budget, when the share reaches
+:data:`PROBE_SHARE`. Otherwise it starts again with ``"cameras"``: the new model takes the whole
+step budget (the probe's steps are not counted), while a time budget counts the probe's
+seconds too (the schedule runs over the whole time). A budget whose tenth is under
+:data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe (or after one that ran out
+of seconds first). Opt-in until GPU runs of the capture benchmark judge it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import gc
 from collections.abc import Callable
 
 import torch
@@ -72,7 +78,7 @@ def _probe_length(config: TrainConfig) -> tuple[int, float | None]:
 
 
 def _spend(trainer: Trainer, steps: int, seconds: float) -> None:
-    """Take the probe's ``steps`` and ``seconds`` off ``trainer``'s budget (its config)."""
+    """Take ``steps`` and ``seconds`` off ``trainer``'s budget (its config)."""
     budget_steps, budget_seconds = trainer.config.budget()
     if budget_steps is not None:
         trainer.config.steps = max(budget_steps - steps, 0)
@@ -86,7 +92,8 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
     """A trainer for ``scene`` whose config's ``contraction_fit`` "probe" has been decided (see
     the module docstring), ready for :meth:`Trainer.train` on the rest of the budget; other
     settings as ``make_trainer(scene, config, device)``. Returns the trainer and what the probe
-    saw (None when no probe ran: another ``contraction_fit``, or a scene that trains bounded)."""
+    saw: None for another ``contraction_fit`` or a scene that trains bounded; a share of None
+    where the budget is too short for a probe."""
     config = config or TrainConfig()
     if config.contraction_fit != PROBE_FIT:
         return make_trainer(scene, config, device), None
@@ -104,9 +111,14 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
     trainer.flush()
     share = density_share_inside(trainer.grid)
     spent_steps, spent_seconds = trainer.step_count, trainer.train_seconds
-    if share < PROBE_SHARE or spent_steps < PROBE_MIN_STEPS:
-        del trainer
-        trainer = make_trainer(scene, cameras, device)
-        trainer.train_seconds = spent_seconds  # the probe's seconds count as training
-    _spend(trainer, spent_steps, spent_seconds)
-    return trainer, ProbeResult(share, spent_steps, spent_seconds, trainer.config.contraction_fit)
+    if share >= PROBE_SHARE and spent_steps >= PROBE_MIN_STEPS:  # a NaN share starts again
+        _spend(trainer, spent_steps, spent_seconds)
+        return trainer, ProbeResult(share, spent_steps, spent_seconds, "seen")
+    del trainer
+    gc.collect()  # a trainer refers to itself (its step phases): free its device memory first
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()
+    trainer = make_trainer(scene, cameras, device)
+    trainer.train_seconds = spent_seconds  # the probe's seconds count in a time budget
+    _spend(trainer, 0, spent_seconds)
+    return trainer, ProbeResult(share, spent_steps, spent_seconds, "cameras")
