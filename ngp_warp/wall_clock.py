@@ -30,6 +30,13 @@ class WallClock:
         self.seconds[phase] = self.seconds.get(phase, 0.0) + now - self._last
         self._last = now
 
+    def shift(self, seconds: float, source: str, target: str) -> None:
+        """Count ``seconds`` of phase ``source`` under ``target`` instead (work of one kind done
+        within another's mark, e.g. training during the start-up)."""
+        if seconds > 0:
+            self.seconds[source] = self.seconds.get(source, 0.0) - seconds
+            self.seconds[target] = self.seconds.get(target, 0.0) + seconds
+
     def summary(self) -> str:
         """One line: ``wall clock 21.4 s: start-up 4.1 s, training 15.2 s, ...``."""
         parts = ", ".join(f"{phase.replace('_', '-')} {s:.1f} s" for phase, s in self.seconds.items())

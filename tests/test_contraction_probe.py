@@ -2,11 +2,13 @@
 that keeps the box the cameras see or starts again with the box holding them, on the budget left."""
 
 import importlib.util
+import json
 from pathlib import Path
 
 import pytest
 import torch
 
+from ngp_warp.cli import main
 from ngp_warp.cli.common import UserError, _new_probed_trainer
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
@@ -32,11 +34,16 @@ def small(**settings) -> TrainConfig:
 
 
 @pytest.fixture(scope="module")
-def sky(tmp_path_factory):
+def sky_folder(tmp_path_factory) -> Path:
     """The demo object over the environment at infinity as a COLMAP model: a contracted capture."""
     root = tmp_path_factory.mktemp("probe")
     demo = write_demo_scene(root / "demo", width=24, height=24, n_train=14, n_test=4, supersample=2)
-    return load_scene(capture_scenes.write_capture(demo, root / "sky", "colmap-sky"))
+    return capture_scenes.write_capture(demo, root / "sky", "colmap-sky")
+
+
+@pytest.fixture(scope="module")
+def sky(sky_folder):
+    return load_scene(sky_folder)
 
 
 def test_density_share_inside_counts_the_cells_whose_centre_lies_in_the_inner_box():
@@ -97,3 +104,20 @@ def test_probe_needs_the_probed_trainer_and_one_gpu(sky):
         Trainer(sky, TrainConfig(steps=1, contraction_fit="probe", **SMALL), device="cpu")
     with pytest.raises(UserError, match="not supported with data-parallel"):
         _new_probed_trainer(sky, TrainConfig(steps=1, contraction_fit="probe", **SMALL), "cpu", data_parallel=True)
+
+
+def test_train_says_what_the_probe_saw_and_counts_its_seconds_as_training(sky_folder, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(probe, "PROBE_STEPS", 6)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.75)
+    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)  # keep the box the cameras see
+    out = tmp_path / "run"
+    sets = ["contraction_fit=probe", "grid_resolution=16", "field.log2_hashmap_size=12", "field.n_levels=4",
+            "field.hidden=16"]
+    assert main(["train", str(sky_folder), "--out", str(out), "--steps", "8", "--no-video", "--device", "cpu",
+                 "--quiet", "--target-samples", "1024", *[a for kv in sets for a in ("--set", kv)]]) == 0
+    err = capsys.readouterr().err
+    assert "contraction_fit=probe: " in err and "after 6 steps" in err and "(seen)" in err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["steps"] == 8  # the probe's 6 and 2 more
+    assert metrics["wall_seconds"]["training"] >= metrics["train_seconds"]  # the probe's seconds included

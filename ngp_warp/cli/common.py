@@ -117,9 +117,18 @@ def new_trainer(scene, config, device: str):
         raise UserError(f"--set: {e}") from None
 
 
+def _check_video(args, scene) -> None:
+    """The orbit video's frames fit in memory (checked before the work), unless ``--no-video``."""
+    from ngp_warp.outputs.video_out import check_video_memory
+
+    if not args.no_video:
+        check_video_memory(args.frames, scene.train.width, scene.train.height, depth=False)
+
+
 def _new_probed_trainer(scene, config, device: str, data_parallel: bool):
     """:func:`new_trainer`, its ``contraction_fit`` "probe" decided by a short training (one line
-    on stderr says what it saw); UserError for the probe with data-parallel training."""
+    on stderr says what it saw), and the probe's seconds of training (0 without one); UserError
+    for the probe with data-parallel training."""
     from ngp_warp.training.contraction_probe import probed_trainer
     from ngp_warp.training.scene_defaults import PROBE_FIT
 
@@ -132,7 +141,7 @@ def _new_probed_trainer(scene, config, device: str, data_parallel: bool):
                f"{probe.share:.2f} of the density inside the box the cameras see after {probe.steps} steps "
                f"({probe.seconds:.1f} s)")
         print(f"contraction_fit=probe: {saw}: training with the box {box} ({probe.fit})", file=sys.stderr)
-    return trainer
+    return trainer, 0.0 if probe is None else probe.seconds
 
 
 def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
@@ -159,14 +168,14 @@ def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
 def _run(scene, scene_path: Path, folder, args, device: str, config, resume: bool) -> dict:
     from ngp_warp.training.checkpoint import load_trainer, save_checkpoint
     from ngp_warp.outputs.camera_path import around_cameras
-    from ngp_warp.outputs.video_out import check_video_memory, render_trainer_video
+    from ngp_warp.outputs.video_out import render_trainer_video
     from ngp_warp.outputs.evaluate import evaluate, write_metrics
     from ngp_warp.wall_clock import WallClock
     from ngp_warp.training.refined_transforms import write_refined_transforms
 
     out = folder.path
     ckpt = out / CHECKPOINT
-    downscale = args.downscale or 1
+    downscale, probe_seconds = args.downscale or 1, 0.0
     if resume:
         trainer, record = load_trainer(ckpt, device=device, scene_path=scene_path)  # the same views
         if args.downscale not in (None, record["downscale"]):
@@ -176,7 +185,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         downscale = record["downscale"]
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
-        trainer = _new_probed_trainer(scene, config, device, getattr(args, "data_parallel", False))
+        _check_video(args, scene)  # before a probe trains
+        trainer, probe_seconds = _new_probed_trainer(scene, config, device, getattr(args, "data_parallel", False))
     if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
         from ngp_warp.training.distributed import is_main_rank, make_data_parallel
 
@@ -197,10 +207,11 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     def save() -> None:  # an overwritten run's outputs go just before the first (good) write
         save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim)
 
-    if not args.no_video:  # the orbit video's frames, checked before the work
-        check_video_memory(args.frames, scene.train.width, scene.train.height, depth=False)
+    if resume:
+        _check_video(args, scene)
     clock = WallClock(getattr(args, "started", time.perf_counter()))
     clock.mark("start_up")
+    clock.shift(probe_seconds, "start_up", "training")  # the probe trained during the start-up
     _train(trainer, save, folder, args, scene_path)
     clock.mark("training")
     save()
