@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ngp_warp.outputs.metrics import psnr
-from ngp_warp.training.appearance_fit import fit_appearance_code, right_half
+from ngp_warp.outputs.evaluate import psnr_whole_and_halves
+from ngp_warp.training.appearance_fit import fit_appearance_code
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fit_study import held_out_views, trainer_or_usage_error  # noqa: E402
@@ -39,12 +39,6 @@ def candidate_codes(codes: torch.Tensor, centres: torch.Tensor, centre: torch.Te
             codes.mean(0)]
 
 
-def view_scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[float, float, float]:
-    """PSNR of ``rgb`` against ``gt`` ([H, W, 3] float32 each): whole, left half, right half."""
-    half = gt.shape[1] // 2
-    return psnr(rgb, gt), psnr(rgb[:, :half], gt[:, :half]), psnr(right_half(rgb), right_half(gt))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("run", help="a finished run's folder (its checkpoint.pt)")
@@ -58,8 +52,9 @@ def main() -> None:
     for name, camera, gt in held_out_views(trainer):
         choices = candidate_codes(codes, centres, camera["c2w"][:3, 3].to(centres))
         choices.append(fit_appearance_code(trainer, **camera, image=gt, background=background))
-        scores = [view_scores(trainer.render_image(**camera, background=background, appearance_code=code)["rgb"], gt)
-                  for code in choices]
+        renders = [trainer.render_image(**camera, background=background, appearance_code=code)["rgb"]
+                   for code in choices]
+        scores = [psnr_whole_and_halves(rgb, gt) for rgb in renders]
         rows.append(scores)
         print(Path(name).name, "  ".join(f"{c}: {w:.2f}/{l:.2f}/{r:.2f}" for c, (w, l, r) in zip(CHOICES, scores)),
               flush=True)

@@ -22,23 +22,17 @@ import torch
 
 from ngp_warp.data.loading import load_scene
 from ngp_warp.training.config import TrainConfig, cpu_sizes
+from ngp_warp.training.contraction_probe import density_share_inside, inner_cells
 from ngp_warp.training.scene_defaults import CONTRACTION_FITS
 from ngp_warp.training.trainer import Trainer
 
 
-def inside_shares(occs: torch.Tensor, bitfield: torch.Tensor, resolution: int) -> tuple[float, float]:
-    """(share of the density, share of the occupied cells) of a one-cascade contracted grid
-    (``occs`` [R³] float32, -1 where unseen; ``bitfield`` [ceil(R³ / 8)] uint8) whose cell centre
-    lies in the inner box, [-1, 1]³ of the grid's [-2, 2]³."""
-    n = resolution ** 3
-    index = torch.arange(n, device=occs.device)
-    occupied = ((bitfield[index >> 3] >> (index & 7).to(torch.uint8)) & 1).bool()
-    ijk = torch.stack([index // resolution ** 2, (index // resolution) % resolution, index % resolution], -1)
-    centre = (ijk.float() + 0.5) * (4.0 / resolution) - 2.0
-    inside = (centre.abs() <= 1.0).all(-1)
-    density = occs.clamp_min(0)
-    return (float((density * inside).sum() / density.sum().clamp_min(1e-30)),
-            float((occupied & inside).sum() / occupied.sum().clamp_min(1)))
+def inside_shares(grid) -> tuple[float, float]:
+    """(share of the density, share of the occupied cells) of a contracted grid
+    (:class:`~ngp_warp.ops.occupancy.OccupancyGrid`) in its inner box's cells."""
+    occupied = grid.occupied().reshape(-1)
+    cells = float((occupied & inner_cells(grid)).sum()) / max(int(occupied.sum()), 1)
+    return density_share_inside(grid), cells
 
 
 def main() -> None:
@@ -61,10 +55,9 @@ def main() -> None:
         trainer.step(step / marks[-1])
         if step in marks:
             trainer.flush()
-            grid = trainer.grid
-            density, cells = inside_shares(grid.occs, grid.bitfield, grid.resolution)
-            print(f"| {args.scene} | {args.fit} | {step} | {density:.3f} | {cells:.3f} | {time.perf_counter() - start:.0f} |",
-                  flush=True)
+            density, cells = inside_shares(trainer.grid)
+            seconds = time.perf_counter() - start
+            print(f"| {args.scene} | {args.fit} | {step} | {density:.3f} | {cells:.3f} | {seconds:.0f} |", flush=True)
 
 
 if __name__ == "__main__":

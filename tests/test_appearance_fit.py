@@ -1,5 +1,5 @@
 """A held-out view's appearance code, fitted on the left half of its image with the field frozen,
-and the evaluation that scores it on the right half (issue 18 item 3; CPU)."""
+and the evaluation that scores it on the right half (CPU)."""
 
 import json
 from pathlib import Path

@@ -5,7 +5,10 @@ from pathlib import Path
 
 import torch
 
-_spec = importlib.util.spec_from_file_location("code_choice", Path(__file__).parents[1] / "benchmarks" / "code_choice.py")
+from ngp_warp.outputs.evaluate import psnr_whole_and_halves
+
+_spec = importlib.util.spec_from_file_location("code_choice",
+                                               Path(__file__).parents[1] / "benchmarks" / "code_choice.py")
 code_choice = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(code_choice)
 
@@ -24,9 +27,9 @@ def test_candidate_codes_follow_the_cameras_nearest_the_view():
     torch.testing.assert_close(mean, codes.mean(0))
 
 
-def test_view_scores_split_the_image_at_half_its_width():
+def test_psnr_whole_and_halves_split_the_image_at_half_its_width():
     gt = torch.full((4, 6, 3), 0.5)
     rgb = gt.clone()
     rgb[:, 3:] += 0.1  # the right half off by 0.1: 20 dB there, exact on the left
-    whole, left, right = code_choice.view_scores(rgb, gt)
+    whole, left, right = psnr_whole_and_halves(rgb, gt)
     assert abs(right - 20.0) < 1e-4 and left > 60 and abs(whole - 23.0103) < 1e-3

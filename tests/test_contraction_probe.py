@@ -57,6 +57,8 @@ def test_density_share_inside_counts_the_cells_whose_centre_lies_in_the_inner_bo
     assert probe.density_share_inside(grid) == 0.0  # nothing seen yet
     with pytest.raises(ValueError, match="contracted grid"):
         probe.density_share_inside(OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=8))
+    inside = probe.inner_cells(grid).reshape(8, 8, 8)
+    assert int(inside.sum()) == 4 ** 3 and inside[2:6, 2:6, 2:6].all()
 
 
 @pytest.mark.parametrize("threshold, kept", [(-1.0, "seen"), (2.0, "cameras")])

@@ -120,11 +120,16 @@ def _scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[dict, str]:
 NEAREST_CODE_KEYS = ("psnr_nearest_code", "psnr_nearest_code_left", "psnr_nearest_code_right")
 
 
+def psnr_whole_and_halves(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[float, float, float]:
+    """PSNR of ``rgb`` against ``gt`` ([H, W, 3] float32 each): the whole image, its left half
+    (columns < W // 2) and its right half (:func:`right_half`)."""
+    half = gt.shape[1] // 2
+    return psnr(rgb, gt), psnr(rgb[:, :half], gt[:, :half]), psnr(right_half(rgb), right_half(gt))
+
+
 def _nearest_code_scores(rgb: torch.Tensor, gt: torch.Tensor) -> dict:
-    """PSNR of a view rendered with the nearest training camera's code ([H, W, 3] float32 each):
-    the whole image, its left half (columns < W // 2) and its right half (:func:`right_half`)."""
-    left = rgb[:, : rgb.shape[1] // 2], gt[:, : gt.shape[1] // 2]
-    return dict(zip(NEAREST_CODE_KEYS, (psnr(rgb, gt), psnr(*left), psnr(right_half(rgb), right_half(gt)))))
+    """:func:`psnr_whole_and_halves` of a view rendered with the nearest training camera's code."""
+    return dict(zip(NEAREST_CODE_KEYS, psnr_whole_and_halves(rgb, gt)))
 
 
 def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:

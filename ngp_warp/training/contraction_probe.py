@@ -4,8 +4,8 @@ The contraction's inner box can hold every training camera (``"cameras"``) or on
 median camera sees at the centre (``"seen"``, :func:`~ngp_warp.training.scene_defaults.contraction_box`).
 ``"seen"`` suits an object before a backdrop at infinity (lego over an environment: 32.5 against
 30.0 dB at 60 s on an H100) and costs a scene with content around its cameras (the unbounded
-scene: 30.8 against 31.5), and the cameras and images alone do not tell the two apart
-(benchmarks/NOTES.md, entries 45 and 49). Training does: started with ``"seen"``, an object keeps
+scene: 30.8 against 31.5), and no rule on the cameras and images alone told the two apart
+(benchmarks/NOTES.md). Training does: started with ``"seen"``, an object keeps
 its density inside the inner box (its backdrop is the field's learned environment), while a
 scene around its cameras puts a share of it outside. After 800 steps on 2 CPU cores
 (benchmarks/RESULTS.md, ``inner_density.py``) the share of the occupancy grid's density inside
@@ -55,16 +55,22 @@ class ProbeResult:
     fit: str
 
 
-def density_share_inside(grid: OccupancyGrid) -> float:
-    """The share of a contracted grid's density estimate (``occs`` ≥ 0; -1 marks unseen cells)
-    in the cells whose centre lies in the inner box, [-1, 1]³ of the grid's [-2, 2]³. One host
-    synchronisation."""
+def inner_cells(grid: OccupancyGrid) -> torch.Tensor:
+    """bool [R³] on the grid's device, in the order of ``occs``: the cells of a contracted grid
+    whose centre lies in the inner box, [-1, 1]³ of the grid's [-2, 2]³. ValueError for a grid
+    without contraction."""
     if grid.contraction is None or grid.levels != 1:
-        raise ValueError("density_share_inside needs a contracted grid (one cascade)")
+        raise ValueError("inner_cells needs a contracted grid (one cascade)")
     r = grid.resolution
     axis = (torch.arange(r, device=grid.occs.device, dtype=torch.float32) + 0.5) * (4.0 / r) - 2.0
-    inside_axis = axis.abs() <= 1.0
-    inside = (inside_axis[:, None, None] & inside_axis[None, :, None] & inside_axis[None, None, :]).reshape(-1)
+    inside = axis.abs() <= 1.0
+    return (inside[:, None, None] & inside[None, :, None] & inside[None, None, :]).reshape(-1)
+
+
+def density_share_inside(grid: OccupancyGrid) -> float:
+    """The share of a contracted grid's density estimate (``occs`` ≥ 0; -1 marks unseen cells)
+    in its :func:`inner_cells`. One host synchronisation."""
+    inside = inner_cells(grid)
     density = grid.occs.clamp_min(0)
     total = float(density.sum())
     return float((density * inside).sum()) / total if total > 0 else 0.0
