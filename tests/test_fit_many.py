@@ -168,27 +168,33 @@ def _kill_tree(pid: int) -> None:
 
 @pytest.mark.slow
 def test_a_node_that_dies_leaves_finished_scenes_and_a_rerun_fits_the_rest(tmp_path):
-    """Two single-process nodes share four scenes; once a scene is finished one node is killed
-    (SIGKILL, its whole process group). The other stops; every scene finished so far keeps a
-    complete metrics.json, and the same command run again (one process) fits only the rest."""
+    """Two single-process nodes share four scenes; once a scene is finished the node holding the
+    rendezvous store is killed (SIGKILL, its whole process tree). The other loses the queue and
+    stops; every scene finished so far keeps a complete metrics.json, and the same command run
+    again (one process) fits only the rest. (A survivor that holds the store fits every scene left,
+    which would leave nothing to rerun.)"""
     root = tmp_path / "many"
     for i, name in enumerate(["chair", "mug", "lamp", "cup"]):
         write_demo_scene(root / "scenes" / name, width=12, height=12, n_train=4, n_test=1, seed=i, supersample=1)
     (root / "manifest.txt").write_text("scenes/*\n")
     out = tmp_path / "out"
     args = ["fit-many", str(root / "manifest.txt"), "--out", str(out), "--steps", "40", *TINY]
-    node = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc-per-node", "1",
-            "--rdzv-backend", "c10d", "--rdzv-endpoint", f"127.0.0.1:{_free_port()}", "--rdzv-id", "fit-many-kill",
-            "-m", "ngp_warp.cli", *args]
+    endpoint = f"127.0.0.1:{_free_port()}"
+
+    def node(is_host: int) -> list[str]:  # the host node holds the rendezvous store the queue lives in
+        return [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc-per-node", "1",
+                "--rdzv-backend", "c10d", "--rdzv-endpoint", endpoint, "--rdzv-id", "fit-many-kill",
+                "--rdzv-conf", f"is_host={is_host}", "-m", "ngp_warp.cli", *args]
+
     env = {**os.environ, "OMP_NUM_THREADS": "1"}  # two nodes on one host's cores
-    nodes = [subprocess.Popen(node, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
-                              start_new_session=True) for _ in range(2)]
+    nodes = [subprocess.Popen(node(is_host), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                              start_new_session=True) for is_host in (0, 1)]
     try:
         start = time.monotonic()
         while not any(finished_metrics(d) for d in out.glob("*") if d.is_dir()):
             assert time.monotonic() - start < 240 and all(p.poll() is None for p in nodes), "no scene finished"
             time.sleep(0.1)
-        _kill_tree(nodes[1].pid)  # the node: torchrun's agent and its worker
+        _kill_tree(nodes[1].pid)  # the host node: torchrun's agent, its store and its worker
         with contextlib.suppress(subprocess.TimeoutExpired):  # torchrun's agent may wait for the dead one's
             nodes[0].wait(timeout=90)
     finally:
