@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from ngp_warp.cli import main
-from ngp_warp.cli.common import UserError, _new_probed_trainer
+from ngp_warp.cli.common import UserError, refuse_probe
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.ops.occupancy import OccupancyGrid
@@ -101,11 +101,54 @@ def test_the_probe_is_left_out_where_nothing_is_contracted(sky):
     assert seen is None and trainer.config.contraction is None
 
 
-def test_probe_needs_the_probed_trainer_and_one_gpu(sky):
+def test_a_stopped_training_runs_the_schedule_of_the_whole_budget(sky, monkeypatch):
+    """``Trainer.train(stop=...)`` (the probe's training) ends at the step given, each step's
+    progress that of the whole budget's schedule; training on, for the steps left (a budget
+    counts from where ``train`` starts), ends the schedule."""
+    seen = []
+    step = Trainer.step
+    monkeypatch.setattr(Trainer, "step", lambda self, progress=0.0: (seen.append(progress), step(self, progress))[1])
+    trainer = Trainer(sky, small(steps=20), device="cpu")
+    trainer.train(show_progress=False, stop=(5, None), desc="probe")
+    assert trainer.step_count == 5 and seen == pytest.approx([i / 20 for i in range(5)])
+    trainer.config.steps = 15
+    trainer.train(show_progress=False)
+    assert trainer.step_count == 20 and seen == pytest.approx([i / 20 for i in range(20)])
+
+
+def test_probe_needs_the_probed_trainer_and_is_refused_before_loading_where_it_cannot_run(sky, tmp_path, monkeypatch,
+                                                                                          capsys):
     with pytest.raises(ValueError, match="decided by a short training"):
         Trainer(sky, TrainConfig(steps=1, contraction_fit="probe", **SMALL), device="cpu")
-    with pytest.raises(UserError, match="not supported with data-parallel"):
-        _new_probed_trainer(sky, TrainConfig(steps=1, contraction_fit="probe", **SMALL), "cpu", data_parallel=True)
+    not_a_scene = tmp_path / "empty"
+    not_a_scene.mkdir()  # loading it would fail: the probe's refusal comes first
+    from ngp_warp.training import distributed
+
+    monkeypatch.setattr(distributed, "join_data_parallel", lambda args: True)  # a rank of --gpus 2
+    assert main(["train", str(not_a_scene), "--out", str(tmp_path / "run"), "--steps", "8", "--device", "cpu",
+                 "--set", "contraction_fit=probe"]) == 2
+    assert "contraction_fit=probe: not supported with data-parallel training" in capsys.readouterr().err
+    with pytest.raises(UserError, match="not supported by view"):
+        refuse_probe(TrainConfig(contraction_fit="probe"), "by view (it trains live)")
+    refuse_probe(TrainConfig(contraction_fit="seen"), "by view")  # other fits pass
+
+
+def test_ctrl_c_during_the_probe_says_nothing_was_saved_and_leaves_no_folder(sky_folder, tmp_path, monkeypatch,
+                                                                            capsys):
+    train = Trainer.train
+
+    def interrupted_probe(self, *args, desc="train", **kwargs):
+        if desc == "probe":
+            raise KeyboardInterrupt
+        return train(self, *args, desc=desc, **kwargs)
+
+    monkeypatch.setattr(Trainer, "train", interrupted_probe)
+    out = tmp_path / "run"
+    assert main(["train", str(sky_folder), "--out", str(out), "--steps", "8000", "--no-video", "--device", "cpu",
+                 "--quiet", "--set", "contraction_fit=probe"]) == 130
+    assert "interrupted during the contraction probe, before the first checkpoint: nothing saved" in \
+        capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_train_says_what_the_probe_saw_and_counts_its_seconds_as_training(sky_folder, tmp_path, monkeypatch, capsys):

@@ -125,16 +125,26 @@ def _check_video(args, scene) -> None:
         check_video_memory(args.frames, scene.train.width, scene.train.height, depth=False)
 
 
-def _new_probed_trainer(scene, config, device: str, data_parallel: bool):
-    """:func:`new_trainer`, its ``contraction_fit`` "probe" decided by a short training (one line
-    on stderr says what it saw), and the probe's seconds of training (0 without one); UserError
-    for the probe with data-parallel training."""
-    from ngp_warp.training.contraction_probe import probed_trainer
+def refuse_probe(config, why: str) -> None:
+    """UserError (before any loading) for ``contraction_fit`` "probe" where it cannot run."""
     from ngp_warp.training.scene_defaults import PROBE_FIT
 
-    if data_parallel and config is not None and config.contraction_fit == PROBE_FIT:
-        raise UserError("--set contraction_fit=probe: not supported with data-parallel training (--gpus > 1)")
-    trainer, probe = probed_trainer(scene, config, device, make_trainer=new_trainer)
+    if config is not None and config.contraction_fit == PROBE_FIT:
+        raise UserError(f"--set contraction_fit=probe: not supported {why}; give seen or cameras")
+
+
+def _new_probed_trainer(scene, config, device: str, show_progress: bool):
+    """:func:`new_trainer`, its ``contraction_fit`` "probe" decided by a short training (one line
+    on stderr says what it saw), and the probe's seconds of training (0 without one). Ctrl-C
+    during the probe says that nothing was saved."""
+    from ngp_warp.training.contraction_probe import probed_trainer
+
+    try:
+        trainer, probe = probed_trainer(scene, config, device, make_trainer=new_trainer, show_progress=show_progress)
+    except KeyboardInterrupt:
+        print("ngp-warp: interrupted during the contraction probe, before the first checkpoint: nothing "
+              "saved (run the command again)", file=sys.stderr)
+        raise
     if probe is not None:
         box = "the cameras see" if probe.fit == "seen" else "holding the cameras"
         saw = ("the budget is too short for a probe" if probe.share is None else
@@ -186,7 +196,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
         _check_video(args, scene)  # before a probe trains
-        trainer, probe_seconds = _new_probed_trainer(scene, config, device, getattr(args, "data_parallel", False))
+        trainer, probe_seconds = _new_probed_trainer(scene, config, device, show_progress=not args.quiet)
     if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
         from ngp_warp.training.distributed import is_main_rank, make_data_parallel
 

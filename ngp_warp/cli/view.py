@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from ngp_warp.outputs.camera_path import MAX_SIDE
-from ngp_warp.cli.common import (CHECKPOINT, MAX_DOWNSCALE, UserError, new_trainer, positive, resolve_device, seed_number,
-                                 train_config)
+from ngp_warp.cli.common import (CHECKPOINT, MAX_DOWNSCALE, UserError, new_trainer, positive, refuse_probe, resolve_device,
+                                 seed_number, train_config)
 
 
 def add_view_parser(subparsers):
@@ -50,6 +50,7 @@ def load_target(args, device: str):
     if not target.exists():
         raise UserError(f"{target}: no such run or scene folder")
     config = train_config(args, device)  # bad settings before the scene is read
+    refuse_probe(config, "by view (it trains live)")
     return new_trainer(load_scene(target, downscale=args.downscale), config, device), True
 
 

@@ -93,13 +93,14 @@ def _spend(trainer: Trainer, steps: int, seconds: float) -> None:
 
 
 def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None = None,
-                   make_trainer: Callable[[Scene, TrainConfig, str | None], Trainer] = Trainer
-                   ) -> tuple[Trainer, ProbeResult | None]:
+                   make_trainer: Callable[[Scene, TrainConfig, str | None], Trainer] = Trainer,
+                   show_progress: bool = False) -> tuple[Trainer, ProbeResult | None]:
     """A trainer for ``scene`` whose config's ``contraction_fit`` "probe" has been decided (see
     the module docstring), ready for :meth:`Trainer.train` on the rest of the budget; other
-    settings as ``make_trainer(scene, config, device)``. Returns the trainer and what the probe
-    saw: None for another ``contraction_fit`` or a scene that trains bounded; a share of None
-    where the budget is too short for a probe."""
+    settings as ``make_trainer(scene, config, device)``; the probe's training with a progress bar
+    ("probe") when ``show_progress``. Returns the trainer and what the probe saw: None for another
+    ``contraction_fit`` or a scene that trains bounded; a share of None where the budget is too
+    short for a probe."""
     config = config or TrainConfig()
     if config.contraction_fit != PROBE_FIT:
         return make_trainer(scene, config, device), None
@@ -110,11 +111,7 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
     if steps < PROBE_MIN_STEPS:  # too short a run to tell: the box holding the cameras
         return make_trainer(scene, cameras, device), ProbeResult(None, 0, 0.0, "cameras")
     trainer = make_trainer(scene, dataclasses.replace(config, contraction_fit="seen"), device)
-    total_steps, total_seconds = trainer.config.budget()
-    while trainer.step_count < steps and (seconds is None or trainer.train_seconds < seconds):
-        trainer.step(max(trainer.step_count / total_steps if total_steps else 0.0,
-                         trainer.train_seconds / total_seconds if total_seconds else 0.0))
-    trainer.flush()
+    trainer.train(show_progress=show_progress, stop=(steps, seconds), desc="probe")
     share = density_share_inside(trainer.grid)
     spent_steps, spent_seconds = trainer.step_count, trainer.train_seconds
     if share >= PROBE_SHARE and spent_steps >= PROBE_MIN_STEPS:  # a NaN share starts again

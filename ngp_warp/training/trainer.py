@@ -218,28 +218,35 @@ class Trainer:
         return self.weights.averaged_weights()
 
     def train(self, show_progress: bool = True, checkpoint: Callable[[], None] | None = None,
-              checkpoint_every: float = 300.0) -> None:
+              checkpoint_every: float = 300.0, stop: tuple[int | None, float | None] = (None, None),
+              desc: str = "train") -> None:
         """Train until the step or time budget of the config is spent, with a progress bar on
-        stderr (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps).
+        stderr named ``desc`` (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps).
 
         The loss is read every ``READOUT_EVERY`` steps and after the last (the readout's one
         host sync, bar or not): a non-finite loss raises :class:`TrainingDiverged`.
         ``checkpoint`` (e.g. a save to disk), when given, is called at the first readout after
-        each ``checkpoint_every`` seconds of wall-clock."""
+        each ``checkpoint_every`` seconds of wall-clock. ``stop`` (a step count, seconds of
+        training; either None) ends it earlier, the schedule still running over the whole budget
+        (a contraction probe's first steps)."""
         steps, seconds = self.config.budget()
         start_step, start_seconds = self.step_count, self.train_seconds
+        stop_steps = None if stop[0] is None else stop[0] - start_step
+        stop_seconds = None if stop[1] is None else stop[1] - start_seconds
         last_checkpoint = time.monotonic()
 
         def done() -> float:  # the bar counts steps, or seconds with a time budget only
             return self.step_count - start_step if steps else round(self.train_seconds - start_seconds, 1)
 
-        with progress_bar(desc="train", total=steps or seconds, unit="step" if steps else "s", disable=not show_progress,
-                  dynamic_ncols=True) as bar:
+        total = min(x for x in ((steps, stop_steps) if steps else (seconds, stop_seconds)) if x is not None)
+        with progress_bar(desc=desc, total=total, unit="step" if steps else "s", disable=not show_progress,
+                          dynamic_ncols=True) as bar:
             while True:
                 done_steps = self.step_count - start_step
                 clock = self.train_seconds if self.shared_clock is None else self.shared_clock(done_steps)
                 spent = clock - start_seconds
-                if (steps is not None and done_steps >= steps) or (seconds is not None and spent >= seconds):
+                if any(limit is not None and used >= limit for used, limit in
+                       ((done_steps, steps), (spent, seconds), (done_steps, stop_steps), (spent, stop_seconds))):
                     break
                 progress = max(self.step_count / (start_step + steps) if steps else 0.0,
                                clock / (start_seconds + seconds) if seconds else 0.0)
