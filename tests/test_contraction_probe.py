@@ -15,7 +15,7 @@ from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.ops.occupancy import OccupancyGrid
 from ngp_warp.training import contraction_probe as probe
 from ngp_warp.training.config import TrainConfig, cpu_sizes
-from ngp_warp.training.trainer import Trainer
+from ngp_warp.training.trainer import Trainer, TrainingDiverged
 
 _spec = importlib.util.spec_from_file_location("capture_scenes",
                                                Path(__file__).parents[1] / "benchmarks" / "capture_scenes.py")
@@ -133,21 +133,25 @@ def test_probe_needs_the_probed_trainer_and_is_refused_before_loading_where_it_c
     refuse_probe(TrainConfig(contraction_fit="seen"), "by view")  # other fits pass
 
 
-def test_ctrl_c_during_the_probe_says_nothing_was_saved_and_leaves_no_folder(sky_folder, tmp_path, monkeypatch,
-                                                                            capsys):
+@pytest.mark.parametrize("error, code, says", [
+    (KeyboardInterrupt, 130, "interrupted during the contraction probe, before the first checkpoint: nothing saved"),
+    (TrainingDiverged("the loss is nan at step 7"), 2, "nan at step 7 (during the contraction probe; nothing was saved)"),
+])
+def test_a_probe_stopped_by_ctrl_c_or_a_diverged_loss_says_nothing_was_saved_and_leaves_no_folder(
+        sky_folder, tmp_path, monkeypatch, capsys, error, code, says):
     train = Trainer.train
 
-    def interrupted_probe(self, *args, desc="train", **kwargs):
+    def stopped_probe(self, *args, desc="train", **kwargs):
         if desc == "probe":
-            raise KeyboardInterrupt
+            raise error
         return train(self, *args, desc=desc, **kwargs)
 
-    monkeypatch.setattr(Trainer, "train", interrupted_probe)
+    monkeypatch.setattr(Trainer, "train", stopped_probe)
     out = tmp_path / "run"
     assert main(["train", str(sky_folder), "--out", str(out), "--steps", "8000", "--no-video", "--device", "cpu",
-                 "--quiet", "--set", "contraction_fit=probe"]) == 130
-    assert "interrupted during the contraction probe, before the first checkpoint: nothing saved" in \
-        capsys.readouterr().err
+                 "--quiet", "--set", "contraction_fit=probe"]) == code
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err
     assert not out.exists()
 
 

@@ -136,8 +136,9 @@ def refuse_probe(config, why: str) -> None:
 def _new_probed_trainer(scene, config, device: str, show_progress: bool):
     """:func:`new_trainer`, its ``contraction_fit`` "probe" decided by a short training (one line
     on stderr says what it saw), and the probe's seconds of training (0 without one). Ctrl-C
-    during the probe says that nothing was saved."""
+    during the probe says that nothing was saved; a probe that diverges is a UserError."""
     from ngp_warp.training.contraction_probe import probed_trainer
+    from ngp_warp.training.trainer import TrainingDiverged
 
     try:
         trainer, probe = probed_trainer(scene, config, device, make_trainer=new_trainer, show_progress=show_progress)
@@ -145,6 +146,8 @@ def _new_probed_trainer(scene, config, device: str, show_progress: bool):
         print("ngp-warp: interrupted during the contraction probe, before the first checkpoint: nothing "
               "saved (run the command again)", file=sys.stderr)
         raise
+    except TrainingDiverged as e:
+        raise UserError(f"{e} (during the contraction probe; nothing was saved)") from None
     if probe is not None:
         box = "the cameras see" if probe.fit == "seen" else "holding the cameras"
         saw = ("the budget is too short for a probe" if probe.share is None else
