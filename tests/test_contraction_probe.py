@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from ngp_warp.cli import main
-from ngp_warp.cli.common import UserError, refuse_probe
+from ngp_warp.cli.common import UserError, _new_probed_trainer, refuse_probe
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.ops.occupancy import OccupancyGrid
@@ -82,17 +82,34 @@ def test_the_probe_keeps_the_seen_box_or_starts_again_on_the_budget_left(sky, mo
 def test_a_probe_out_of_seconds_starts_again_on_the_seconds_left(sky, monkeypatch):
     monkeypatch.setattr(probe, "PROBE_STEPS", 10**6)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 10**5)  # never reached within the probe's 0.2 s
+    monkeypatch.setattr(probe, "PACE_FROM", 10**6)  # nor its pace read
     trainer, seen = probe.probed_trainer(sky, small(seconds=2.0, contraction_fit="probe"), "cpu")
-    assert seen.fit == trainer.config.contraction_fit == "cameras" and seen.steps >= 1
+    assert seen.fit == trainer.config.contraction_fit == "cameras" and seen.steps >= 1 and seen.share is None
     assert 0.2 <= seen.seconds < 2.0 and trainer.step_count == 0
     assert trainer.train_seconds == pytest.approx(seen.seconds)
     assert trainer.config.seconds == pytest.approx(2.0 - seen.seconds)
 
 
-def test_a_budget_too_short_to_tell_trains_with_the_box_holding_the_cameras(sky):
+@pytest.mark.parametrize("probe_steps, min_steps, probed", [(10**5, 10**5, 20), (30, 25, 30)])
+def test_a_probe_whose_pace_cannot_reach_its_least_steps_ends_early(sky, monkeypatch, probe_steps, min_steps, probed):
+    """The pace read over steps 10 to 20 says whether ``PROBE_MIN_STEPS`` fit in the probe's
+    seconds: 10^5 do not (it ends at step 20, long before its 60 s), 25 do (it runs to its 30)."""
+    monkeypatch.setattr(probe, "PROBE_STEPS", probe_steps)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", min_steps)
+    monkeypatch.setattr(probe, "PACE_FROM", 10)
+    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)  # a probe that tells keeps the box the cameras see
+    trainer, seen = probe.probed_trainer(sky, small(seconds=600.0, contraction_fit="probe"), "cpu")
+    assert seen.steps == probed and seen.seconds < 60.0
+    assert (seen.share is None) == (seen.fit == "cameras") == (min_steps > probed)
+
+
+def test_a_budget_too_short_to_tell_trains_with_the_box_holding_the_cameras(sky, capsys):
     trainer, seen = probe.probed_trainer(sky, TrainConfig(steps=100, contraction_fit="probe", **SMALL), "cpu")
     assert seen.share is None and seen.steps == 0 and trainer.config.contraction_fit == "cameras"
     assert trainer.config.steps == 100 and trainer.step_count == 0
+    _new_probed_trainer(sky, TrainConfig(steps=100, contraction_fit="probe", **SMALL), "cpu", show_progress=False)
+    assert capsys.readouterr().err == ("contraction_fit=probe: the budget is too short for a probe: training with the "
+                                       "box holding the cameras (cameras)\n")
 
 
 def test_the_probe_is_left_out_where_nothing_is_contracted(sky):

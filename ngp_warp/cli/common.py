@@ -150,9 +150,9 @@ def _new_probed_trainer(scene, config, device: str, show_progress: bool):
         raise UserError(f"{e} (during the contraction probe; nothing was saved)") from None
     if probe is not None:
         box = "the cameras see" if probe.fit == "seen" else "holding the cameras"
-        saw = ("the budget is too short for a probe" if probe.share is None else
-               f"{probe.share:.2f} of the density inside the box the cameras see after {probe.steps} steps "
-               f"({probe.seconds:.1f} s)")
+        spent = f"{probe.steps} steps in {probe.seconds:.1f} s"
+        saw = (f"{probe.share:.2f} of the density inside the box the cameras see after {spent}" if probe.share is not None
+               else f"the budget is too short for a probe{f' (ended after {spent})' if probe.steps else ''}")
         print(f"contraction_fit=probe: {saw}: training with the box {box} ({probe.fit})", file=sys.stderr)
     return trainer, 0.0 if probe is None else probe.seconds
 

@@ -19,8 +19,9 @@ and keeps that trainer, whose steps and seconds count in the budget, when the sh
 :data:`PROBE_SHARE`. Otherwise it starts again with ``"cameras"``: the new model takes the whole
 step budget (the probe's steps are not counted), while a time budget counts the probe's
 seconds too (the schedule runs over the whole time). A budget whose tenth is under
-:data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe (or after one that ran out
-of seconds first). Opt-in until GPU runs of the capture benchmark judge it.
+:data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe, or after one that ran out
+of seconds first; a probe whose pace says so ends early (on 2 CPU cores at about 10 steps a
+second, a run under about 400 s). Opt-in until GPU runs of the capture benchmark judge it.
 """
 
 from __future__ import annotations
@@ -41,13 +42,16 @@ PROBE_STEPS = 800
 PROBE_MIN_STEPS = 400  # fewer cannot tell (at 200 steps the objects' shares were 0.50 and 0.80)
 PROBE_BUDGET_SHARE = 0.1  # the probe takes at most this share of the run's steps or seconds
 PROBE_SHARE = 0.78  # between 0.68 (scenes around their cameras) and 0.82 (objects from 400 steps on)
+PACE_FROM = 50  # the probe's pace is read from this step on (the first steps load kernels and capture graphs)
 
 
 @dataclasses.dataclass
 class ProbeResult:
     """What the probe saw: the density share inside the ``"seen"`` box after ``steps`` steps
-    (``seconds`` of training; None and 0 where the budget is too short for
-    :data:`PROBE_MIN_STEPS`), and the inner box it chose (``"seen"`` or ``"cameras"``)."""
+    (``seconds`` of training), and the inner box it chose (``"seen"`` or ``"cameras"``). The
+    share is None where the budget is too short for :data:`PROBE_MIN_STEPS` steps: ``steps`` and
+    ``seconds`` are then 0 when that was clear from the start, else what the probe spent before
+    its time or its pace said so."""
 
     share: float | None
     steps: int
@@ -92,6 +96,27 @@ def _spend(trainer: Trainer, steps: int, seconds: float) -> None:
         trainer.config.seconds = max(budget_seconds - seconds, 1e-9)
 
 
+def _too_slow(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
+    """For :meth:`Trainer.train`'s ``until``: True once the pace of steps from :data:`PACE_FROM` on
+    (read over as many again) says that :data:`PROBE_MIN_STEPS` steps will not fit in ``seconds``
+    of training (never without a time limit), so a probe that cannot tell ends early."""
+    start: list[float] = []
+
+    def too_slow() -> bool:
+        steps, clock = trainer.step_count, trainer.train_seconds
+        if seconds is None or steps < PACE_FROM:
+            return False
+        if not start:
+            start.extend((steps, clock))
+            return False
+        if steps < 2 * start[0]:
+            return False
+        pace = (clock - start[1]) / (steps - start[0])
+        return clock + pace * (PROBE_MIN_STEPS - steps) > seconds
+
+    return too_slow
+
+
 def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None = None,
                    make_trainer: Callable[[Scene, TrainConfig, str | None], Trainer] = Trainer,
                    show_progress: bool = False) -> tuple[Trainer, ProbeResult | None]:
@@ -111,10 +136,10 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
     if steps < PROBE_MIN_STEPS:  # too short a run to tell: the box holding the cameras
         return make_trainer(scene, cameras, device), ProbeResult(None, 0, 0.0, "cameras")
     trainer = make_trainer(scene, dataclasses.replace(config, contraction_fit="seen"), device)
-    trainer.train(show_progress=show_progress, stop=(steps, seconds), desc="probe")
-    share = density_share_inside(trainer.grid)
+    trainer.train(show_progress=show_progress, stop=(steps, seconds), until=_too_slow(trainer, seconds), desc="probe")
     spent_steps, spent_seconds = trainer.step_count, trainer.train_seconds
-    if share >= PROBE_SHARE and spent_steps >= PROBE_MIN_STEPS:  # a NaN share starts again
+    share = density_share_inside(trainer.grid) if spent_steps >= PROBE_MIN_STEPS else None
+    if share is not None and share >= PROBE_SHARE:  # a NaN share starts again
         _spend(trainer, spent_steps, spent_seconds)
         return trainer, ProbeResult(share, spent_steps, spent_seconds, "seen")
     del trainer

@@ -219,7 +219,7 @@ class Trainer:
 
     def train(self, show_progress: bool = True, checkpoint: Callable[[], None] | None = None,
               checkpoint_every: float = 300.0, stop: tuple[int | None, float | None] = (None, None),
-              desc: str = "train") -> None:
+              until: Callable[[], bool] | None = None, desc: str = "train") -> None:
         """Train until the step or time budget of the config is spent, with a progress bar on
         stderr named ``desc`` (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps).
 
@@ -228,7 +228,7 @@ class Trainer:
         ``checkpoint`` (e.g. a save to disk), when given, is called at the first readout after
         each ``checkpoint_every`` seconds of wall-clock. ``stop`` (a step count, seconds of
         training; either None) ends it earlier, the schedule still running over the whole budget
-        (a contraction probe's first steps)."""
+        (a contraction probe's first steps), as does ``until`` returning True at a readout."""
         steps, seconds = self.config.budget()
         start_step, start_seconds = self.step_count, self.train_seconds
         stop_steps = None if stop[0] is None else stop[0] - start_step
@@ -259,6 +259,8 @@ class Trainer:
                     if checkpoint is not None and time.monotonic() - last_checkpoint >= checkpoint_every:
                         checkpoint()
                         last_checkpoint = time.monotonic()
+                    if until is not None and until():
+                        break
             bar.update(done() - bar.n)
         if self.step_count > start_step:
             _check_finite(stats, self.step_count)
