@@ -100,15 +100,15 @@ def _too_slow(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
     """For :meth:`Trainer.train`'s ``until``: True once the pace of steps from :data:`PACE_FROM` on
     (read over as many again) says that :data:`PROBE_MIN_STEPS` steps will not fit in ``seconds``
     of training (never without a time limit), so a probe that cannot tell ends early."""
-    start: list[float] = []
+    start: tuple[int, float] | None = None  # (step, training seconds) where the pace is read from
 
     def too_slow() -> bool:
+        nonlocal start
         steps, clock = trainer.step_count, trainer.train_seconds
         if seconds is None or steps < PACE_FROM:
             return False
-        if not start:
-            start.extend((steps, clock))
-            return False
+        if start is None:
+            start = (steps, clock)
         if steps < 2 * start[0]:
             return False
         pace = (clock - start[1]) / (steps - start[0])
