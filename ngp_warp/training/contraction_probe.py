@@ -20,8 +20,8 @@ and keeps that trainer, whose steps and seconds count in the budget, when the sh
 step budget (the probe's steps are not counted), while a time budget counts the probe's
 seconds too (the schedule runs over the whole time). A budget whose tenth is under
 :data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe, or after one that ran out
-of seconds first; a probe whose pace says so ends early (on 2 CPU cores at about 10 steps a
-second, a run under about 400 s). Opt-in until GPU runs of the capture benchmark judge it.
+of seconds first; a probe whose pace says so ends early (on 2 CPU cores, at about 8 steps a
+second, a run under about 500 s). Opt-in until GPU runs of the capture benchmark judge it.
 """
 
 from __future__ import annotations
