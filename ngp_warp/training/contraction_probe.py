@@ -20,8 +20,9 @@ and keeps that trainer, whose steps and seconds count in the budget, when the sh
 step budget (the probe's steps are not counted), while a time budget counts the probe's
 seconds too (the schedule runs over the whole time). A budget whose tenth is under
 :data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe, or after one that ran out
-of seconds first; a probe whose pace says so ends early (on 2 CPU cores, at about 8 steps a
-second, a run under about 500 s). Opt-in until GPU runs of the capture benchmark judge it.
+of seconds first; a probe whose pace says it is far too slow ends early (on 2 CPU cores, at
+about 8 steps a second, a run under about 330 s; one of 330–500 s runs its probe out). Opt-in
+until GPU runs of the capture benchmark judge it.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ PROBE_MIN_STEPS = 400  # fewer cannot tell (at 200 steps the objects' shares wer
 PROBE_BUDGET_SHARE = 0.1  # the probe takes at most this share of the run's steps or seconds
 PROBE_SHARE = 0.78  # between 0.68 (scenes around their cameras) and 0.82 (objects from 400 steps on)
 PACE_FROM = 50  # the probe's pace is read from this step on (the first steps load kernels and capture graphs)
+PACE_MARGIN = 1.5  # early steps capture graphs of new sizes and march a fuller grid: a probe ends this much too slow
 
 
 @dataclasses.dataclass
@@ -98,8 +100,9 @@ def _spend(trainer: Trainer, steps: int, seconds: float) -> None:
 
 def _too_slow(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
     """For :meth:`Trainer.train`'s ``until``: True once the pace of steps from :data:`PACE_FROM` on
-    (read over as many again) says that :data:`PROBE_MIN_STEPS` steps will not fit in ``seconds``
-    of training (never without a time limit), so a probe that cannot tell ends early."""
+    (read over as many again) says that :data:`PROBE_MIN_STEPS` steps would take more than
+    :data:`PACE_MARGIN` times ``seconds`` of training (never without a time limit), so a probe
+    that cannot tell ends early."""
     start: tuple[int, float] | None = None  # (step, training seconds) where the pace is read from
 
     def too_slow() -> bool:
@@ -112,7 +115,7 @@ def _too_slow(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
         if steps < 2 * start[0]:
             return False
         pace = (clock - start[1]) / (steps - start[0])
-        return clock + pace * (PROBE_MIN_STEPS - steps) > seconds
+        return clock + pace * (PROBE_MIN_STEPS - steps) > PACE_MARGIN * seconds
 
     return too_slow
 
