@@ -1,5 +1,6 @@
 """contraction_fit "probe": the density share inside a contracted grid's inner box, and the probe
-that keeps the box the cameras see or starts again with the box holding them, on the budget left."""
+that starts again bounded (an object before a distant backdrop) or contracted with the box
+holding the cameras, on the budget left."""
 
 import importlib.util
 import json
@@ -61,22 +62,34 @@ def test_density_share_inside_counts_the_cells_whose_centre_lies_in_the_inner_bo
     assert int(inside.sum()) == 4 ** 3 and inside[2:6, 2:6, 2:6].all()
 
 
-@pytest.mark.parametrize("threshold, kept", [(-1.0, "seen"), (2.0, "cameras")])
-def test_the_probe_keeps_the_seen_box_or_starts_again_on_the_budget_left(sky, monkeypatch, threshold, kept):
+@pytest.mark.parametrize("threshold, chosen", [(-1.0, "bounded"), (2.0, "cameras")])
+def test_the_probe_starts_again_bounded_or_contracted_on_the_budget_left(sky, monkeypatch, threshold, chosen):
     monkeypatch.setattr(probe, "PROBE_STEPS", 6)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
     monkeypatch.setattr(probe, "PROBE_SHARE", threshold)
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.2)
     trainer, seen = probe.probed_trainer(sky, small(steps=30, contraction_fit="probe"), "cpu")
-    assert seen.steps == 6 and seen.fit == kept == trainer.config.contraction_fit
+    assert seen.steps == 6 and seen.fit == chosen and trainer.config.contraction_fit == "cameras"
     assert 0.0 <= seen.share <= 1.0 and seen.seconds > 0
-    # the kept model's steps include the probe's; a new model takes the whole step budget
-    assert (trainer.step_count, trainer.config.steps) == ((6, 24) if kept == "seen" else (0, 30))
+    assert (trainer.step_count, trainer.config.steps) == (0, 30)  # the new model takes the whole step budget
     assert trainer.train_seconds == pytest.approx(seen.seconds)  # the probe's seconds count
-    inner = Trainer(sky, small(steps=1, contraction_fit=kept), device="cpu").grid.inner_aabb_host
-    assert trainer.grid.inner_aabb_host == pytest.approx(inner)
+    if chosen == "bounded":  # instant-ngp's cascades in colmap2nerf's box, no contraction or environment
+        assert trainer.config.contraction is None and trainer.config.aabb_scale == probe.OBJECT_AABB_SCALE == 32
+        assert trainer.grid.levels == 6 and not trainer.config.field.environment
+    else:
+        inner = Trainer(sky, small(steps=1, contraction_fit="cameras"), device="cpu").grid.inner_aabb_host
+        assert trainer.config.contraction == "l2" and trainer.grid.inner_aabb_host == pytest.approx(inner)
     trainer.train(show_progress=False)
     assert trainer.step_count == 30
+
+
+def test_a_probe_that_finds_an_object_keeps_the_box_given(sky, monkeypatch):
+    monkeypatch.setattr(probe, "PROBE_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.5)
+    trainer, seen = probe.probed_trainer(sky, small(steps=8, contraction_fit="probe", aabb_scale=8), "cpu")
+    assert seen.fit == "bounded" and trainer.config.aabb_scale == 8 and trainer.grid.levels == 4
 
 
 def test_a_probe_out_of_seconds_starts_again_on_the_seconds_left(sky, monkeypatch):
@@ -97,7 +110,7 @@ def test_a_probe_whose_pace_cannot_reach_its_least_steps_ends_early(sky, monkeyp
     monkeypatch.setattr(probe, "PROBE_STEPS", probe_steps)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", min_steps)
     monkeypatch.setattr(probe, "PACE_FROM", 10)
-    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)  # a probe that tells keeps the box the cameras see
+    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)  # a probe that tells trains bounded
     trainer, seen = probe.probed_trainer(sky, small(seconds=600.0, contraction_fit="probe"), "cpu")
     assert seen.steps == probed and seen.seconds < 60.0
     assert (seen.share is None) == (seen.fit == "cameras") == (min_steps > probed)
@@ -108,8 +121,8 @@ def test_a_budget_too_short_to_tell_trains_with_the_box_holding_the_cameras(sky,
     assert seen.share is None and seen.steps == 0 and trainer.config.contraction_fit == "cameras"
     assert trainer.config.steps == 100 and trainer.step_count == 0
     _new_probed_trainer(sky, TrainConfig(steps=100, contraction_fit="probe", **SMALL), "cpu", show_progress=False)
-    assert capsys.readouterr().err == ("contraction_fit=probe: the budget is too short for a probe: training with the "
-                                       "box holding the cameras (cameras)\n")
+    assert capsys.readouterr().err == ("contraction_fit=probe: the budget is too short for a probe: training "
+                                       "contracted, the inner box holding the cameras\n")
 
 
 def test_the_probe_is_left_out_where_nothing_is_contracted(sky):
@@ -176,14 +189,14 @@ def test_train_says_what_the_probe_saw_and_counts_its_seconds_as_training(sky_fo
     monkeypatch.setattr(probe, "PROBE_STEPS", 6)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.75)
-    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)  # keep the box the cameras see
+    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)  # an object: bounded
     out = tmp_path / "run"
     sets = ["contraction_fit=probe", "grid_resolution=16", "field.log2_hashmap_size=12", "field.n_levels=4",
             "field.hidden=16"]
     assert main(["train", str(sky_folder), "--out", str(out), "--steps", "8", "--no-video", "--device", "cpu",
                  "--quiet", "--target-samples", "1024", *[a for kv in sets for a in ("--set", kv)]]) == 0
     err = capsys.readouterr().err
-    assert "contraction_fit=probe: " in err and "after 6 steps" in err and "(seen)" in err
+    assert "contraction_fit=probe: " in err and "after 6 steps" in err and "bounded in a box of 32" in err
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["steps"] == 8  # the probe's 6 and 2 more
+    assert metrics["steps"] == 8  # the new model's; the probe's 6 steps are not counted
     assert metrics["wall_seconds"]["training"] >= metrics["train_seconds"]  # the probe's seconds included

@@ -1,28 +1,28 @@
-"""A contracted capture's inner box chosen by training: ``contraction_fit="probe"``.
+"""How a 360° capture with content beyond its subject trains, chosen by training: ``contraction_fit="probe"``.
 
-The contraction's inner box can hold every training camera (``"cameras"``) or only what the
-median camera sees at the centre (``"seen"``, :func:`~ngp_warp.training.scene_defaults.contraction_box`).
-``"seen"`` suits an object before a backdrop at infinity (lego over an environment: 32.5 against
-30.0 dB at 60 s on an H100) and costs a scene with content around its cameras (the unbounded
-scene: 30.8 against 31.5), and no rule on the cameras and images alone told the two apart
-(benchmarks/NOTES.md). Training does: started with ``"seen"``, an object keeps
-its density inside the inner box (its backdrop is the field's learned environment), while a
-scene around its cameras puts a share of it outside. After 800 steps on 2 CPU cores
-(benchmarks/RESULTS.md, ``inner_density.py``) the share of the occupancy grid's density inside
-the box was 0.89–0.95 for the two objects and 0.63–0.68 for the unbounded scene and the room.
+Such a capture is either an object before a backdrop at infinity (the backdrop is a sky or an
+environment: nothing triangulates beyond the subject) or a scene with content all around its
+cameras (ground, walls). The first trains best bounded in instant-ngp's box of 32 with its
+cascades (lego over an environment at 60 s on an H100: 33.4 dB against 30.0 contracted with the
+box holding the cameras), the second contracted (the unbounded scene: 31.5 against 29.2), and
+no rule on the cameras and images alone told the two apart (benchmarks/NOTES.md). Training
+does: contracted with the box the median camera sees at the centre (``"seen"``,
+:func:`~ngp_warp.training.scene_defaults.contraction_box`), an object keeps its density inside
+that box (its backdrop is the field's learned environment), while a scene around its cameras
+puts a share of it outside. After 800 steps on 2 CPU cores (benchmarks/RESULTS.md,
+``inner_density.py``) the share of the occupancy grid's density inside the box was 0.89–0.95
+for the two objects and 0.63–0.68 for the unbounded scene and the room.
 
-(``inner_density.py`` runs its own learning-rate schedule over 1200 steps; the probe itself, at
-the schedule of an 8000-step run, saw 0.95 and 0.65 on the demo object and the unbounded scene.)
-
-So the probe trains with ``"seen"`` for :data:`PROBE_STEPS` steps (at most a tenth of the budget)
-and keeps that trainer, whose steps and seconds count in the budget, when the share reaches
-:data:`PROBE_SHARE`. Otherwise it starts again with ``"cameras"``: the new model takes the whole
-step budget (the probe's steps are not counted), while a time budget counts the probe's
-seconds too (the schedule runs over the whole time). A budget whose tenth is under
-:data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe, or after one that ran out
-of seconds first; a probe whose pace says it is far too slow ends early (on 2 CPU cores, at
-about 8 steps a second, a run under about 330 s; one of 330–500 s runs its probe out). Opt-in
-until GPU runs of the capture benchmark judge it.
+So the probe trains with ``"seen"`` for :data:`PROBE_STEPS` steps (at most a tenth of the
+budget), then starts again: bounded in the box of :data:`OBJECT_AABB_SCALE` (or the
+``aabb_scale`` given) when the share reaches :data:`PROBE_SHARE`, else contracted with the box
+holding the cameras (``"cameras"``). The new model takes the whole of a step budget (the
+probe's steps are not counted, so a resumed run's step count stays the model's own), while a
+time budget counts the probe's seconds too (the schedule runs over the whole time). A budget
+whose tenth is under :data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe,
+or after one that ran out of seconds first; a probe whose pace says it is far too slow ends
+early (on 2 CPU cores, at about 8 steps a second, a run under about 330 s; one of 330–500 s
+runs its probe out).
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ PROBE_STEPS = 800
 PROBE_MIN_STEPS = 400  # fewer cannot tell (at 200 steps the objects' shares were 0.50 and 0.80)
 PROBE_BUDGET_SHARE = 0.1  # the probe takes at most this share of the run's steps or seconds
 PROBE_SHARE = 0.78  # between 0.68 (scenes around their cameras) and 0.82 (objects from 400 steps on)
+OBJECT_AABB_SCALE = 32  # an object before a distant backdrop trains bounded in this box (colmap2nerf's default)
 PACE_FROM = 50  # the probe's pace is read from this step on (the first steps load kernels and capture graphs)
 PACE_MARGIN = 1.5  # early steps capture graphs of new sizes and march a fuller grid: a probe ends this much too slow
 
@@ -50,7 +51,8 @@ PACE_MARGIN = 1.5  # early steps capture graphs of new sizes and march a fuller 
 @dataclasses.dataclass
 class ProbeResult:
     """What the probe saw: the density share inside the ``"seen"`` box after ``steps`` steps
-    (``seconds`` of training), and the inner box it chose (``"seen"`` or ``"cameras"``). The
+    (``seconds`` of training), and what it chose: ``"bounded"`` (an object before a distant
+    backdrop) or ``"cameras"`` (contracted, the inner box holding the cameras). The
     share is None where the budget is too short for :data:`PROBE_MIN_STEPS` steps: ``steps`` and
     ``seconds`` are then 0 when that was clear from the start, else what the probe spent before
     its time or its pace said so."""
@@ -124,8 +126,8 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
                    make_trainer: Callable[[Scene, TrainConfig, str | None], Trainer] = Trainer,
                    show_progress: bool = False) -> tuple[Trainer, ProbeResult | None]:
     """A trainer for ``scene`` whose config's ``contraction_fit`` "probe" has been decided (see
-    the module docstring), ready for :meth:`Trainer.train` on the rest of the budget; other
-    settings as ``make_trainer(scene, config, device)``; the probe's training with a progress bar
+    the module docstring: bounded, or contracted with the box holding the cameras), ready for
+    :meth:`Trainer.train` on the rest of the budget; other settings as ``make_trainer(scene, config, device)``; the probe's training with a progress bar
     ("probe") when ``show_progress``. Returns the trainer and what the probe saw: None for another
     ``contraction_fit`` or a scene that trains bounded; a share of None where the budget is too
     short for a probe."""
@@ -142,14 +144,20 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
     trainer.train(show_progress=show_progress, stop=(steps, seconds), until=_too_slow(trainer, seconds), desc="probe")
     spent_steps, spent_seconds = trainer.step_count, trainer.train_seconds
     share = density_share_inside(trainer.grid) if spent_steps >= PROBE_MIN_STEPS else None
-    if share is not None and share >= PROBE_SHARE:  # a NaN share starts again
-        _spend(trainer, spent_steps, spent_seconds)
-        return trainer, ProbeResult(share, spent_steps, spent_seconds, "seen")
+    bounded = share is not None and share >= PROBE_SHARE  # a NaN share trains contracted
     del trainer
     gc.collect()  # a trainer refers to itself (its step phases): free its device memory first
     if torch.cuda.is_available():
         torch.cuda.empty_cache()
-    trainer = make_trainer(scene, cameras, device)
+    chosen = _bounded(config) if bounded else cameras
+    trainer = make_trainer(scene, chosen, device)
     trainer.train_seconds = spent_seconds  # the probe's seconds count in a time budget
     _spend(trainer, 0, spent_seconds)
-    return trainer, ProbeResult(share, spent_steps, spent_seconds, "cameras")
+    return trainer, ProbeResult(share, spent_steps, spent_seconds, "bounded" if bounded else "cameras")
+
+
+def _bounded(config: TrainConfig) -> TrainConfig:
+    """``config`` for an object before a distant backdrop: no contraction, the box of
+    :data:`OBJECT_AABB_SCALE` unless ``config`` gives an ``aabb_scale``."""
+    box = OBJECT_AABB_SCALE if config.aabb_scale == "auto" else config.aabb_scale
+    return dataclasses.replace(config, contraction=None, aabb_scale=box, contraction_fit="cameras")
