@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from ngp_warp.cli import main
-from ngp_warp.cli.common import UserError, _new_probed_trainer, refuse_probe
+from ngp_warp.cli.common import UserError, _new_probed_trainer, no_probe, refuse_probe
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.ops.occupancy import OccupancyGrid
@@ -93,14 +93,35 @@ def test_a_probe_that_finds_an_object_keeps_the_box_given(sky, monkeypatch):
 
 
 def test_a_probe_out_of_seconds_starts_again_on_the_seconds_left(sky, monkeypatch):
+    """A probe of 10^6 steps ends once its steps at the pace of steps 5 to 10 fill its tenth of
+    the budget; the seconds it spent count in the budget of the model trained after it."""
     monkeypatch.setattr(probe, "PROBE_STEPS", 10**6)
-    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 10**5)  # never reached within the probe's 0.2 s
-    monkeypatch.setattr(probe, "PACE_FROM", 10**6)  # nor its pace read
-    trainer, seen = probe.probed_trainer(sky, small(seconds=2.0, contraction_fit="probe"), "cpu")
-    assert seen.fit == trainer.config.contraction_fit == "cameras" and seen.steps >= 1 and seen.share is None
-    assert 0.2 <= seen.seconds < 2.0 and trainer.step_count == 0
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
+    monkeypatch.setattr(probe, "PACE_FROM", 5)
+    trainer, seen = probe.probed_trainer(sky, small(seconds=20.0, contraction_fit="probe"), "cpu")
+    assert 10 <= seen.steps < 10**4 and seen.share is not None and trainer.step_count == 0
+    assert 1.0 <= seen.seconds < 20.0  # about its 2 s (the pace is read over steps 5 to 10)
     assert trainer.train_seconds == pytest.approx(seen.seconds)
-    assert trainer.config.seconds == pytest.approx(2.0 - seen.seconds)
+    assert trainer.config.seconds == pytest.approx(20.0 - seen.seconds)
+
+
+def test_a_probe_whose_first_steps_load_kernels_for_longer_than_its_seconds_runs_its_steps(sky, monkeypatch):
+    """With a cold kernel cache the first step compiles for longer than a 60 s run's probe (6.4 s
+    on an H100): the probe's seconds count its steps at the pace read after them."""
+    step = Trainer.step
+
+    def cold_first_step(self, progress=0.0):
+        stats = step(self, progress)
+        if self.step_count == 1:
+            self.train_seconds += 10.0  # a first step of 10 s against the probe's 6 s
+        return stats
+
+    monkeypatch.setattr(Trainer, "step", cold_first_step)
+    monkeypatch.setattr(probe, "PROBE_STEPS", 30)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 20)
+    monkeypatch.setattr(probe, "PACE_FROM", 10)
+    trainer, seen = probe.probed_trainer(sky, small(seconds=60.0, contraction_fit="probe"), "cpu")
+    assert seen.steps == 30 and seen.share is not None and seen.seconds > 10.0
 
 
 @pytest.mark.parametrize("probe_steps, min_steps, probed", [(10**5, 10**5, 20), (30, 25, 30)])
@@ -200,3 +221,21 @@ def test_train_says_what_the_probe_saw_and_counts_its_seconds_as_training(sky_fo
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["steps"] == 8  # the new model's; the probe's 6 steps are not counted
     assert metrics["wall_seconds"]["training"] >= metrics["train_seconds"]  # the probe's seconds included
+
+
+def test_auto_probes_where_the_scenes_own_rule_contracts_and_is_the_box_holding_the_cameras_elsewhere(
+        sky, monkeypatch):
+    monkeypatch.setattr(probe, "PROBE_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.5)
+    assert TrainConfig().contraction_fit == "auto"
+    trainer, seen = probe.probed_trainer(sky, small(steps=8), "cpu")
+    assert seen is not None and seen.steps == 4 and trainer.config.contraction_fit == "cameras"
+    for given in ({"contraction": "l2"}, {"contraction": None}):  # a contraction given: no probe
+        trainer, seen = probe.probed_trainer(sky, small(steps=8, **given), "cpu")
+        assert seen is None and trainer.config.contraction == given["contraction"]
+    # a trainer made alone, or a run that cannot probe, takes the box holding the cameras
+    alone = Trainer(sky, small(steps=1), device="cpu")
+    assert alone.config.contraction == "l2" and alone.config.contraction_fit == "cameras"
+    assert no_probe(small()).contraction_fit == "cameras" and no_probe(small(contraction_fit="seen")).contraction_fit == "seen"
+    assert no_probe(None) is None

@@ -4,6 +4,7 @@ device, output folders, the training settings and the train → checkpoint → e
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -133,6 +134,16 @@ def refuse_probe(config, why: str) -> None:
         raise UserError(f"--set contraction_fit=probe: not supported {why}; give seen or cameras")
 
 
+def no_probe(config):
+    """``config`` with ``contraction_fit`` "auto" made "cameras" (a run that cannot probe); None
+    (a resumed run) as it is."""
+    from ngp_warp.training.scene_defaults import AUTO_FIT
+
+    if config is None or config.contraction_fit != AUTO_FIT:
+        return config
+    return dataclasses.replace(config, contraction_fit="cameras")
+
+
 def _new_probed_trainer(scene, config, device: str, show_progress: bool):
     """:func:`new_trainer`, its ``contraction_fit`` "probe" decided by a short training (one line
     on stderr says what it saw), and the probe's seconds of training (0 without one). Ctrl-C
@@ -154,7 +165,7 @@ def _new_probed_trainer(scene, config, device: str, show_progress: bool):
         spent = f"{probe.steps} steps in {probe.seconds:.1f} s"
         saw = (f"{probe.share:.2f} of the density inside the box the cameras see after {spent}" if probe.share is not None
                else f"the budget is too short for a probe{f' (ended after {spent})' if probe.steps else ''}")
-        print(f"contraction_fit=probe: {saw}: training {how}", file=sys.stderr)
+        print(f"contraction_fit={config.contraction_fit}: {saw}: training {how}", file=sys.stderr)
     return trainer, 0.0 if probe is None else probe.seconds
 
 

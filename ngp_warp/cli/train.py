@@ -5,8 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ngp_warp.cli.common import (UserError, check_run_apart, print_metrics, refuse_probe, resolve_device, train_and_report,
-                                 train_config, with_settings, writable_dir)
+from ngp_warp.cli.common import (UserError, check_run_apart, no_probe, print_metrics, refuse_probe, resolve_device,
+                                 train_and_report, train_config, with_settings, writable_dir)
 
 def cmd_train(args) -> None:
     scene = Path(args.scene)
@@ -19,8 +19,9 @@ def cmd_train(args) -> None:
     from ngp_warp.training.distributed import join_data_parallel
 
     args.data_parallel = join_data_parallel(args)  # under torchrun: this rank's device in args.device
-    if args.data_parallel:
+    if args.data_parallel:  # the ranks train one model: no probe (each rank's could decide apart)
         refuse_probe(config, "with data-parallel training (--gpus > 1)")
+        config = no_probe(config)
     metrics = train_and_report(scene, Path(args.out), args, config=config)
     if metrics is not None:  # None on ranks other than 0
         print_metrics(metrics, Path(args.out))

@@ -11,7 +11,7 @@ from ngp_warp._checks import check_numbers
 from ngp_warp.data.loading import Scene
 from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, FieldConfig
 from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
-from ngp_warp.training.scene_defaults import (CONTRACTION_FITS, PROBE_FIT, appearance_dim, choose_aabb_scale,
+from ngp_warp.training.scene_defaults import (AUTO_FIT, CONTRACTION_FITS, PROBE_FIT, appearance_dim, choose_aabb_scale,
                                              choose_contraction, cone_steps, contraction_box, distortion_weight,
                                              occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
@@ -40,9 +40,11 @@ class TrainConfig:
                                         # scenes beyond the unit box or unbounded, 0 for NeRF-synthetic)
     contraction: str | None = "auto"    # "l2" | "linf" | None: unbounded space contracted (mip-NeRF 360,
                                         # nerfstudio's L∞); "auto": the scene's (scene_defaults)
-    contraction_fit: str = "cameras"    # with a contraction, its inner box holds every camera ("cameras")
+    contraction_fit: str = "auto"       # with a contraction, its inner box holds every camera ("cameras")
                                         # or what the median camera sees at the centre ("seen"); "probe":
-                                        # either, by a short training (training.contraction_probe)
+                                        # bounded or "cameras", by a short training (training.contraction_probe);
+                                        # "auto": the probe where the scene's rule contracts and the run can
+                                        # train one (ngp-warp train, demo, fit-many on one GPU), else "cameras"
     aabb_scale: int | str | None = "auto"  # the field's box, instant-ngp's aabb_scale (a power of two);
                                         # None: the scene files'; "auto": per scene (scene_defaults)
     early_stop_eps: float = 1e-4
@@ -77,7 +79,7 @@ class TrainConfig:
         """Raise ValueError naming the first setting outside its range (None is left to the
         device), the field's sizes included."""
         choices = {"loss": ("l2", "huber"), "mlp_precision": ("fp32", "tf32", "bf16"), "supersample": (None, 1, 2, 3, 4),
-                   "contraction": ("auto", None, *CONTRACTIONS), "contraction_fit": (*CONTRACTION_FITS, PROBE_FIT),
+                   "contraction": ("auto", None, *CONTRACTIONS), "contraction_fit": (AUTO_FIT, *CONTRACTION_FITS, PROBE_FIT),
                    "distortion_spacing": ("world", "normalised")}
         for name, allowed in choices.items():
             value = getattr(self, name)
@@ -254,6 +256,8 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
         raise ValueError("contraction_fit 'probe' is decided by a short training, which ngp-warp train, demo "
                          "and fit-many run (ngp_warp.training.contraction_probe.probed_trainer); here use "
                          "'cameras' or 'seen'")
+    if config.contraction_fit == AUTO_FIT:  # no probe here: the box holding the cameras
+        config = dataclasses.replace(config, contraction_fit="cameras")
     aabb_scale = choose_aabb_scale(config.aabb_scale, scene, kind)
     scene = scene.with_aabb_scale(aabb_scale)
     cone = cone_steps(scene, kind)[0] if config.cone_angle is None else config.cone_angle

@@ -36,7 +36,7 @@ import torch
 from ngp_warp.data.loading import Scene
 from ngp_warp.ops.occupancy import OccupancyGrid
 from ngp_warp.training.config import TrainConfig
-from ngp_warp.training.scene_defaults import PROBE_FIT, choose_contraction
+from ngp_warp.training.scene_defaults import AUTO_FIT, PROBE_FIT, choose_contraction
 from ngp_warp.training.trainer import Trainer
 
 PROBE_STEPS = 800
@@ -100,14 +100,16 @@ def _spend(trainer: Trainer, steps: int, seconds: float) -> None:
         trainer.config.seconds = max(budget_seconds - seconds, 1e-9)
 
 
-def _too_slow(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
-    """For :meth:`Trainer.train`'s ``until``: True once the pace of steps from :data:`PACE_FROM` on
-    (read over as many again) says that :data:`PROBE_MIN_STEPS` steps would take more than
-    :data:`PACE_MARGIN` times ``seconds`` of training (never without a time limit), so a probe
-    that cannot tell ends early."""
+def _probe_over(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
+    """For :meth:`Trainer.train`'s ``until``: True once the probe has spent ``seconds`` (never
+    without a time limit) at the pace of its steps from :data:`PACE_FROM` on (read over as many
+    again), or once that pace says :data:`PROBE_MIN_STEPS` steps would take more than
+    :data:`PACE_MARGIN` times ``seconds``, so a probe that cannot tell ends early. Its first steps
+    count at that pace, not at their own: they load and compile kernels and capture graphs, which
+    with a cold kernel cache took 6.4 s for the first step on an H100, more than a 60 s run's probe."""
     start: tuple[int, float] | None = None  # (step, training seconds) where the pace is read from
 
-    def too_slow() -> bool:
+    def over() -> bool:
         nonlocal start
         steps, clock = trainer.step_count, trainer.train_seconds
         if seconds is None or steps < PACE_FROM:
@@ -117,31 +119,40 @@ def _too_slow(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
         if steps < 2 * start[0]:
             return False
         pace = (clock - start[1]) / (steps - start[0])
-        return clock + pace * (PROBE_MIN_STEPS - steps) > PACE_MARGIN * seconds
+        return pace * steps >= seconds or pace * PROBE_MIN_STEPS > PACE_MARGIN * seconds
 
-    return too_slow
+    return over
+
+
+def _probes(config: TrainConfig, scene: Scene) -> bool:
+    """Whether ``config`` has ``scene`` probed: ``contraction_fit`` "probe" on a contracted
+    capture, or "auto" where the scene's own rule contracts it (``contraction`` "auto", no
+    contraction in its files)."""
+    if choose_contraction(config.contraction, scene) is None:
+        return False
+    own_rule = config.contraction == "auto" and scene.contraction is None
+    return config.contraction_fit == PROBE_FIT or (config.contraction_fit == AUTO_FIT and own_rule)
 
 
 def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None = None,
                    make_trainer: Callable[[Scene, TrainConfig, str | None], Trainer] = Trainer,
                    show_progress: bool = False) -> tuple[Trainer, ProbeResult | None]:
-    """A trainer for ``scene`` whose config's ``contraction_fit`` "probe" has been decided (see
-    the module docstring: bounded, or contracted with the box holding the cameras), ready for
-    :meth:`Trainer.train` on the rest of the budget; other settings as ``make_trainer(scene, config, device)``; the probe's training with a progress bar
-    ("probe") when ``show_progress``. Returns the trainer and what the probe saw: None for another
-    ``contraction_fit`` or a scene that trains bounded; a share of None where the budget is too
-    short for a probe."""
+    """A trainer for ``scene`` whose config's ``contraction_fit`` "probe" or "auto" has been
+    decided (see the module docstring: bounded, or contracted with the box holding the cameras),
+    ready for :meth:`Trainer.train` on the rest of the budget; other settings as
+    ``make_trainer(scene, config, device)``; the probe's training with a progress bar ("probe")
+    when ``show_progress``. Returns the trainer and what the probe saw: None where
+    nothing is probed (:func:`_probes`); a share of None where the budget is too short for a
+    probe."""
     config = config or TrainConfig()
-    if config.contraction_fit != PROBE_FIT:
-        return make_trainer(scene, config, device), None
     cameras = dataclasses.replace(config, contraction_fit="cameras")
-    if choose_contraction(config.contraction, scene) is None:
-        return make_trainer(scene, cameras, device), None
+    if not _probes(config, scene):
+        return make_trainer(scene, cameras if config.contraction_fit == PROBE_FIT else config, device), None
     steps, seconds = _probe_length(config)
     if steps < PROBE_MIN_STEPS:  # too short a run to tell: the box holding the cameras
         return make_trainer(scene, cameras, device), ProbeResult(None, 0, 0.0, "cameras")
     trainer = make_trainer(scene, dataclasses.replace(config, contraction_fit="seen"), device)
-    trainer.train(show_progress=show_progress, stop=(steps, seconds), until=_too_slow(trainer, seconds), desc="probe")
+    trainer.train(show_progress=show_progress, stop=(steps, None), until=_probe_over(trainer, seconds), desc="probe")
     spent_steps, spent_seconds = trainer.step_count, trainer.train_seconds
     share = density_share_inside(trainer.grid) if spent_steps >= PROBE_MIN_STEPS else None
     bounded = share is not None and share >= PROBE_SHARE  # a NaN share trains contracted

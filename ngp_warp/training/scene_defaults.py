@@ -52,7 +52,8 @@ _MIN_INWARD = 0.8  # mean cosine between a camera's view axis and its direction 
 _BACKDROP_SHARE = 0.98  # share of the images' edge pixels within _BACKDROP_TOLERANCE of one colour
 _BACKDROP_TOLERANCE = 8  # in 8-bit levels, per channel
 CONTRACTION_FITS = ("cameras", "seen")  # what the contraction's inner box is grown to hold
-PROBE_FIT = "probe"  # either, picked by a short training (ngp_warp.training.contraction_probe)
+PROBE_FIT = "probe"  # bounded or "cameras", picked by a short training (ngp_warp.training.contraction_probe)
+AUTO_FIT = "auto"  # the probe where the scene's own rule contracts and the run can train one, else "cameras"
 
 
 def cone_steps(scene: Scene, contraction: str | None) -> tuple[float, float, float]:

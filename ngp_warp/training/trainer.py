@@ -234,12 +234,14 @@ class Trainer:
         stop_steps = None if stop[0] is None else stop[0] - start_step
         stop_seconds = None if stop[1] is None else stop[1] - start_seconds
         last_checkpoint = time.monotonic()
+        # the bar counts steps, or seconds where only time ends the run (a time budget, no stop in steps alone)
+        count_steps = bool(steps) or (stop_steps is not None and stop_seconds is None)
 
-        def done() -> float:  # the bar counts steps, or seconds with a time budget only
-            return self.step_count - start_step if steps else round(self.train_seconds - start_seconds, 1)
+        def done() -> float:
+            return self.step_count - start_step if count_steps else round(self.train_seconds - start_seconds, 1)
 
-        total = min(x for x in ((steps, stop_steps) if steps else (seconds, stop_seconds)) if x is not None)
-        with progress_bar(desc=desc, total=total, unit="step" if steps else "s", disable=not show_progress,
+        total = min(x for x in ((steps, stop_steps) if count_steps else (seconds, stop_seconds)) if x is not None)
+        with progress_bar(desc=desc, total=total, unit="step" if count_steps else "s", disable=not show_progress,
                           dynamic_ncols=True) as bar:
             while True:
                 done_steps = self.step_count - start_step
