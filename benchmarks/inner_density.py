@@ -22,17 +22,9 @@ import torch
 
 from ngp_warp.data.loading import load_scene
 from ngp_warp.training.config import TrainConfig, cpu_sizes
-from ngp_warp.training.contraction_probe import density_share_inside, inner_cells
+from ngp_warp.training.contraction_probe import shares_inside
 from ngp_warp.training.scene_defaults import CONTRACTION_FITS
 from ngp_warp.training.trainer import Trainer
-
-
-def inside_shares(grid) -> tuple[float, float]:
-    """(share of the density, share of the occupied cells) of a contracted grid
-    (:class:`~ngp_warp.ops.occupancy.OccupancyGrid`) in its inner box's cells."""
-    occupied = grid.occupied().reshape(-1)
-    cells = float((occupied & inner_cells(grid)).sum()) / max(int(occupied.sum()), 1)
-    return density_share_inside(grid), cells
 
 
 def main() -> None:
@@ -55,7 +47,7 @@ def main() -> None:
         trainer.step(step / marks[-1])
         if step in marks:
             trainer.flush()
-            density, cells = inside_shares(trainer.grid)
+            density, cells = shares_inside(trainer.grid)
             seconds = time.perf_counter() - start
             print(f"| {args.scene} | {args.fit} | {step} | {density:.3f} | {cells:.3f} | {seconds:.0f} |", flush=True)
 

@@ -62,15 +62,15 @@ def test_density_share_inside_counts_the_cells_whose_centre_lies_in_the_inner_bo
     assert int(inside.sum()) == 4 ** 3 and inside[2:6, 2:6, 2:6].all()
 
 
-@pytest.mark.parametrize("threshold, chosen", [(-1.0, "bounded"), (2.0, "cameras")])
+@pytest.mark.parametrize("threshold, chosen", [(-1.0, "bounded"), (3.0, "cameras")])
 def test_the_probe_starts_again_bounded_or_contracted_on_the_budget_left(sky, monkeypatch, threshold, chosen):
     monkeypatch.setattr(probe, "PROBE_STEPS", 6)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
-    monkeypatch.setattr(probe, "PROBE_SHARE", threshold)
+    monkeypatch.setattr(probe, "PROBE_SCORE", threshold)
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.2)
     trainer, seen = probe.probed_trainer(sky, small(steps=30, contraction_fit="probe"), "cpu")
     assert seen.steps == 6 and seen.fit == chosen and trainer.config.contraction_fit == "cameras"
-    assert 0.0 <= seen.share <= 1.0 and seen.seconds > 0
+    assert 0.0 <= seen.share <= 1.0 and 0.0 <= seen.cells <= 1.0 and seen.seconds > 0
     assert (trainer.step_count, trainer.config.steps) == (0, 30)  # the new model takes the whole step budget
     assert trainer.train_seconds == pytest.approx(seen.seconds)  # the probe's seconds count
     if chosen == "bounded":  # instant-ngp's cascades in colmap2nerf's box, no contraction or environment
@@ -86,18 +86,42 @@ def test_the_probe_starts_again_bounded_or_contracted_on_the_budget_left(sky, mo
 def test_a_probe_that_finds_an_object_keeps_the_box_given(sky, monkeypatch):
     monkeypatch.setattr(probe, "PROBE_STEPS", 4)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
-    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)
+    monkeypatch.setattr(probe, "PROBE_SCORE", -1.0)
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.5)
     trainer, seen = probe.probed_trainer(sky, small(steps=8, contraction_fit="probe", aabb_scale=8), "cpu")
     assert seen.fit == "bounded" and trainer.config.aabb_scale == 8 and trainer.grid.levels == 4
 
 
+@pytest.mark.parametrize("score, steps, chosen", [(-1.0, 10, "bounded"), (3.0, 30, "cameras")])
+def test_a_probe_ends_at_the_first_reading_that_tells_an_object(sky, monkeypatch, score, steps, chosen):
+    monkeypatch.setattr(probe, "PROBE_STEPS", 30)
+    monkeypatch.setattr(probe, "PROBE_READS", (10, 20))
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_SCORE", score)
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.5)
+    trainer, seen = probe.probed_trainer(sky, small(steps=60, contraction_fit="probe"), "cpu")
+    assert (seen.steps, seen.fit) == (steps, chosen)
+
+
+def test_shares_inside_count_the_density_and_the_occupied_cells_in_the_inner_box():
+    grid = OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=8, contraction="l2")
+    occs = torch.full((8, 8, 8), -1.0)
+    occs[2, 2, 2], occs[5, 3, 4] = 3.0, 0.0  # inside: one occupied cell, one empty
+    occs[6, 3, 3], occs[0, 7, 0], occs[7, 7, 7] = 1.0, 1.0, 1.0  # outside: three occupied cells
+    grid.occs.copy_(occs.reshape(-1))
+    grid.threshold.fill_(0.5)
+    grid._pack()  # occupied: above the threshold
+    share, cells = probe.shares_inside(grid)
+    assert share == pytest.approx(0.5) and cells == pytest.approx(0.25)
+
+
 def test_a_probe_out_of_seconds_starts_again_on_the_seconds_left(sky, monkeypatch):
-    """A probe of 10^6 steps ends once its steps at the pace of steps 5 to 10 fill its tenth of
+    """A probe of 10^6 steps ends once its steps at the pace of steps 5 to 10 fill its share of
     the budget; the seconds it spent count in the budget of the model trained after it."""
     monkeypatch.setattr(probe, "PROBE_STEPS", 10**6)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
     monkeypatch.setattr(probe, "PACE_FROM", 5)
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.1)
     trainer, seen = probe.probed_trainer(sky, small(seconds=20.0, contraction_fit="probe"), "cpu")
     assert 10 <= seen.steps < 10**4 and seen.share is not None and trainer.step_count == 0
     assert 1.0 <= seen.seconds < 20.0  # about its 2 s (the pace is read over steps 5 to 10)
@@ -120,6 +144,7 @@ def test_a_probe_whose_first_steps_load_kernels_for_longer_than_its_seconds_runs
     monkeypatch.setattr(probe, "PROBE_STEPS", 30)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 20)
     monkeypatch.setattr(probe, "PACE_FROM", 10)
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.1)
     trainer, seen = probe.probed_trainer(sky, small(seconds=60.0, contraction_fit="probe"), "cpu")
     assert seen.steps == 30 and seen.share is not None and seen.seconds > 10.0
 
@@ -131,7 +156,7 @@ def test_a_probe_whose_pace_cannot_reach_its_least_steps_ends_early(sky, monkeyp
     monkeypatch.setattr(probe, "PROBE_STEPS", probe_steps)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", min_steps)
     monkeypatch.setattr(probe, "PACE_FROM", 10)
-    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)  # a probe that tells trains bounded
+    monkeypatch.setattr(probe, "PROBE_SCORE", -1.0)  # a probe that tells trains bounded
     trainer, seen = probe.probed_trainer(sky, small(seconds=600.0, contraction_fit="probe"), "cpu")
     assert seen.steps == probed and seen.seconds < 60.0
     assert (seen.share is None) == (seen.fit == "cameras") == (min_steps > probed)
@@ -210,7 +235,7 @@ def test_train_says_what_the_probe_saw_and_counts_its_seconds_as_training(sky_fo
     monkeypatch.setattr(probe, "PROBE_STEPS", 6)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.75)
-    monkeypatch.setattr(probe, "PROBE_SHARE", -1.0)  # an object: bounded
+    monkeypatch.setattr(probe, "PROBE_SCORE", -1.0)  # an object: bounded
     out = tmp_path / "run"
     sets = ["contraction_fit=probe", "grid_resolution=16", "field.log2_hashmap_size=12", "field.n_levels=4",
             "field.hidden=16"]

@@ -163,7 +163,8 @@ def _new_probed_trainer(scene, config, device: str, show_progress: bool):
         how = (f"bounded in a box of {trainer.config.aabb_scale}, as an object before a distant backdrop"
                if probe.fit == "bounded" else "contracted, the inner box holding the cameras")
         spent = f"{probe.steps} steps in {probe.seconds:.1f} s"
-        saw = (f"{probe.share:.2f} of the density inside the box the cameras see after {spent}" if probe.share is not None
+        saw = (f"{probe.share:.2f} of the density and {probe.cells:.2f} of the occupied cells inside the box the "
+               f"cameras see after {spent}" if probe.share is not None
                else f"the budget is too short for a probe{f' (ended after {spent})' if probe.steps else ''}")
         print(f"contraction_fit={config.contraction_fit}: {saw}: training {how}", file=sys.stderr)
     return trainer, 0.0 if probe is None else probe.seconds

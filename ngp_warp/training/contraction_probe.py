@@ -9,20 +9,23 @@ no rule on the cameras and images alone told the two apart (benchmarks/NOTES.md)
 does: contracted with the box the median camera sees at the centre (``"seen"``,
 :func:`~ngp_warp.training.scene_defaults.contraction_box`), an object keeps its density inside
 that box (its backdrop is the field's learned environment), while a scene around its cameras
-puts a share of it outside. After 800 steps on 2 CPU cores (benchmarks/RESULTS.md,
-``inner_density.py``) the share of the occupancy grid's density inside the box was 0.89–0.95
-for the two objects and 0.63–0.68 for the unbounded scene and the room.
+puts a share of it outside. The density's share alone overlaps between the two (34 probes on an
+H100, 14 seeds each of the demo object over an environment and the unbounded scene, 6 of the
+room: 0.61–0.94 against 0.63–0.86 at 800 steps); its sum with the share of occupied cells
+inside the box does not: at least 1.28 for the object by 1600 steps against at most 1.20 for the
+other two at any of 400–1600 steps (benchmarks/RESULTS.md). The objects' sums rise with training,
+the others' stay.
 
-So the probe trains with ``"seen"`` for :data:`PROBE_STEPS` steps (at most a tenth of the
-budget), then starts again: bounded in the box of :data:`OBJECT_AABB_SCALE` (or the
-``aabb_scale`` given) when the share reaches :data:`PROBE_SHARE`, else contracted with the box
-holding the cameras (``"cameras"``). The new model takes the whole of a step budget (the
-probe's steps are not counted, so a resumed run's step count stays the model's own), while a
-time budget counts the probe's seconds too (the schedule runs over the whole time). A budget
-whose tenth is under :data:`PROBE_MIN_STEPS` steps trains with ``"cameras"`` without a probe,
-or after one that ran out of seconds first; a probe whose pace says it is far too slow ends
-early (on 2 CPU cores, at about 8 steps a second, a run under about 330 s; one of 330–500 s
-runs its probe out).
+So the probe trains with ``"seen"`` for up to :data:`PROBE_STEPS` steps (at most 15 % of the
+budget), reading the sum at each of :data:`PROBE_READS` and at its end, and starts again: bounded
+in the box of :data:`OBJECT_AABB_SCALE` (or the ``aabb_scale`` given) at the first reading that
+reaches :data:`PROBE_SCORE`, else contracted with the box holding the cameras (``"cameras"``).
+The new model takes the whole of a step budget (the probe's steps are not counted, so a resumed
+run's step count stays the model's own), while a time budget counts the probe's seconds too (the
+schedule runs over the whole time). A budget whose 15 % is under :data:`PROBE_MIN_STEPS`
+steps trains with ``"cameras"`` without a probe, or after one that ran out of seconds first; a
+probe whose pace says it is far too slow ends early (on 2 CPU cores, at about 8 steps a second,
+a run under about 220 s).
 """
 
 from __future__ import annotations
@@ -39,10 +42,12 @@ from ngp_warp.training.config import TrainConfig
 from ngp_warp.training.scene_defaults import AUTO_FIT, PROBE_FIT, choose_contraction
 from ngp_warp.training.trainer import Trainer
 
-PROBE_STEPS = 800
+PROBE_STEPS = 1600  # the longest probe; an object is told at the first of PROBE_READS where its score is reached
+PROBE_READS = (800, 1200)
 PROBE_MIN_STEPS = 400  # fewer cannot tell (at 200 steps the objects' shares were 0.50 and 0.80)
-PROBE_BUDGET_SHARE = 0.1  # the probe takes at most this share of the run's steps or seconds
-PROBE_SHARE = 0.78  # between 0.68 (scenes around their cameras) and 0.82 (objects from 400 steps on)
+PROBE_BUDGET_SHARE = 0.15  # the probe takes at most this share of the run's steps or seconds (1600 steps
+                           # take 6–7 s of a 60 s run on an H100)
+PROBE_SCORE = 1.25  # density share + occupied-cell share inside the box: an object from this on (module docstring)
 OBJECT_AABB_SCALE = 32  # an object before a distant backdrop trains bounded in this box (colmap2nerf's default)
 PACE_FROM = 50  # the probe's pace is read from this step on (the first steps load kernels and capture graphs)
 PACE_MARGIN = 1.5  # early steps capture graphs of new sizes and march a fuller grid: a probe ends this much too slow
@@ -50,14 +55,16 @@ PACE_MARGIN = 1.5  # early steps capture graphs of new sizes and march a fuller 
 
 @dataclasses.dataclass
 class ProbeResult:
-    """What the probe saw: the density share inside the ``"seen"`` box after ``steps`` steps
-    (``seconds`` of training), and what it chose: ``"bounded"`` (an object before a distant
-    backdrop) or ``"cameras"`` (contracted, the inner box holding the cameras). The
-    share is None where the budget is too short for :data:`PROBE_MIN_STEPS` steps: ``steps`` and
-    ``seconds`` are then 0 when that was clear from the start, else what the probe spent before
-    its time or its pace said so."""
+    """What the probe saw after ``steps`` steps (``seconds`` of training): the shares of the
+    occupancy grid's density (``share``) and of its occupied cells (``cells``) inside the
+    ``"seen"`` box, and what it chose: ``"bounded"`` (an object before a distant backdrop) or
+    ``"cameras"`` (contracted, the inner box holding the cameras). The shares are None where the
+    budget is too short for :data:`PROBE_MIN_STEPS` steps: ``steps`` and ``seconds`` are then 0
+    when that was clear from the start, else what the probe spent before its time or its pace
+    said so."""
 
     share: float | None
+    cells: float | None
     steps: int
     seconds: float
     fit: str
@@ -84,6 +91,20 @@ def density_share_inside(grid: OccupancyGrid) -> float:
     return float((density * inside).sum()) / total if total > 0 else 0.0
 
 
+def shares_inside(grid: OccupancyGrid) -> tuple[float, float]:
+    """(share of the density, share of the occupied cells) of a contracted grid in its
+    :func:`inner_cells`. Two host synchronisations."""
+    occupied = grid.occupied().reshape(-1)
+    cells = float((occupied & inner_cells(grid)).sum()) / max(int(occupied.sum()), 1)
+    return density_share_inside(grid), cells
+
+
+def _tells_object(grid: OccupancyGrid) -> bool:
+    """Whether the shares inside the inner box reach :data:`PROBE_SCORE` together (a NaN does not)."""
+    share, cells = shares_inside(grid)
+    return share + cells >= PROBE_SCORE
+
+
 def _probe_length(config: TrainConfig) -> tuple[int, float | None]:
     """(steps, seconds or None) the probe may take of ``config``'s budget."""
     steps, seconds = config.budget()
@@ -101,7 +122,8 @@ def _spend(trainer: Trainer, steps: int, seconds: float) -> None:
 
 
 def _probe_over(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
-    """For :meth:`Trainer.train`'s ``until``: True once the probe has spent ``seconds`` (never
+    """For :meth:`Trainer.train`'s ``until``: True at a step of :data:`PROBE_READS` whose shares
+    tell an object, or once the probe has spent ``seconds`` (never
     without a time limit) at the pace of its steps from :data:`PACE_FROM` on (read over as many
     again), or once that pace says :data:`PROBE_MIN_STEPS` steps would take more than
     :data:`PACE_MARGIN` times ``seconds``, so a probe that cannot tell ends early. Its first steps
@@ -112,6 +134,8 @@ def _probe_over(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
     def over() -> bool:
         nonlocal start
         steps, clock = trainer.step_count, trainer.train_seconds
+        if steps in PROBE_READS and _tells_object(trainer.grid):
+            return True
         if seconds is None or steps < PACE_FROM:
             return False
         if start is None:
@@ -150,12 +174,12 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
         return make_trainer(scene, cameras if config.contraction_fit == PROBE_FIT else config, device), None
     steps, seconds = _probe_length(config)
     if steps < PROBE_MIN_STEPS:  # too short a run to tell: the box holding the cameras
-        return make_trainer(scene, cameras, device), ProbeResult(None, 0, 0.0, "cameras")
+        return make_trainer(scene, cameras, device), ProbeResult(None, None, 0, 0.0, "cameras")
     trainer = make_trainer(scene, dataclasses.replace(config, contraction_fit="seen"), device)
     trainer.train(show_progress=show_progress, stop=(steps, None), until=_probe_over(trainer, seconds), desc="probe")
     spent_steps, spent_seconds = trainer.step_count, trainer.train_seconds
-    share = density_share_inside(trainer.grid) if spent_steps >= PROBE_MIN_STEPS else None
-    bounded = share is not None and share >= PROBE_SHARE  # a NaN share trains contracted
+    share, cells = shares_inside(trainer.grid) if spent_steps >= PROBE_MIN_STEPS else (None, None)
+    bounded = share is not None and share + cells >= PROBE_SCORE  # a NaN trains contracted
     del trainer
     gc.collect()  # a trainer refers to itself (its step phases): free its device memory first
     if torch.cuda.is_available():
@@ -164,7 +188,7 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
     trainer = make_trainer(scene, chosen, device)
     trainer.train_seconds = spent_seconds  # the probe's seconds count in a time budget
     _spend(trainer, 0, spent_seconds)
-    return trainer, ProbeResult(share, spent_steps, spent_seconds, "bounded" if bounded else "cameras")
+    return trainer, ProbeResult(share, cells, spent_steps, spent_seconds, "bounded" if bounded else "cameras")
 
 
 def _bounded(config: TrainConfig) -> TrainConfig:
