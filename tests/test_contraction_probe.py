@@ -67,11 +67,11 @@ def test_the_probe_starts_again_bounded_or_contracted_on_the_budget_left(sky, mo
     monkeypatch.setattr(probe, "PROBE_STEPS", 6)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
     monkeypatch.setattr(probe, "PROBE_SCORE", threshold)
-    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.2)
-    trainer, seen = probe.probed_trainer(sky, small(steps=30, contraction_fit="probe"), "cpu")
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.5)
+    trainer, seen = probe.probed_trainer(sky, small(steps=12, contraction_fit="probe"), "cpu")
     assert seen.steps == 6 and seen.fit == chosen and trainer.config.contraction_fit == "cameras"
     assert 0.0 <= seen.share <= 1.0 and 0.0 <= seen.cells <= 1.0 and seen.seconds > 0
-    assert (trainer.step_count, trainer.config.steps) == (0, 30)  # the new model takes the whole step budget
+    assert (trainer.step_count, trainer.config.steps) == (0, 12)  # the new model takes the whole step budget
     assert trainer.train_seconds == pytest.approx(seen.seconds)  # the probe's seconds count
     if chosen == "bounded":  # instant-ngp's cascades in colmap2nerf's box, no contraction or environment
         assert trainer.config.contraction is None and trainer.config.aabb_scale == probe.OBJECT_AABB_SCALE == 32
@@ -79,8 +79,8 @@ def test_the_probe_starts_again_bounded_or_contracted_on_the_budget_left(sky, mo
     else:
         inner = Trainer(sky, small(steps=1, contraction_fit="cameras"), device="cpu").grid.inner_aabb_host
         assert trainer.config.contraction == "l2" and trainer.grid.inner_aabb_host == pytest.approx(inner)
-    trainer.train(show_progress=False)
-    assert trainer.step_count == 30
+        trainer.train(show_progress=False)
+        assert trainer.step_count == 12
 
 
 def test_a_probe_that_finds_an_object_keeps_the_box_given(sky, monkeypatch):
@@ -92,31 +92,43 @@ def test_a_probe_that_finds_an_object_keeps_the_box_given(sky, monkeypatch):
     assert seen.fit == "bounded" and trainer.config.aabb_scale == 8 and trainer.grid.levels == 4
 
 
-@pytest.mark.parametrize("score, steps, chosen", [(-1.0, 10, "bounded"), (3.0, 30, "cameras")])
+@pytest.mark.parametrize("score, steps, chosen", [(-1.0, 10, "bounded"), (3.0, 20, "cameras")])
 def test_a_probe_ends_at_the_first_reading_that_tells_an_object(sky, monkeypatch, score, steps, chosen):
-    monkeypatch.setattr(probe, "PROBE_STEPS", 30)
-    monkeypatch.setattr(probe, "PROBE_READS", (10, 20))
+    monkeypatch.setattr(probe, "PROBE_STEPS", 20)
+    monkeypatch.setattr(probe, "PROBE_READS", (10,))
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
     monkeypatch.setattr(probe, "PROBE_SCORE", score)
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.5)
-    trainer, seen = probe.probed_trainer(sky, small(steps=60, contraction_fit="probe"), "cpu")
+    trainer, seen = probe.probed_trainer(sky, small(steps=40, contraction_fit="probe"), "cpu")
     assert (seen.steps, seen.fit) == (steps, chosen)
 
 
 def test_shares_inside_count_the_density_and_the_occupied_cells_in_the_inner_box():
-    grid = OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=8, contraction="l2")
-    occs = torch.full((8, 8, 8), -1.0)
-    occs[2, 2, 2], occs[5, 3, 4] = 3.0, 0.0  # inside: one occupied cell, one empty
-    occs[6, 3, 3], occs[0, 7, 0], occs[7, 7, 7] = 1.0, 1.0, 1.0  # outside: three occupied cells
-    grid.occs.copy_(occs.reshape(-1))
-    grid.threshold.fill_(0.5)
-    grid._pack()  # occupied: above the threshold
-    share, cells = probe.shares_inside(grid)
-    assert share == pytest.approx(0.5) and cells == pytest.approx(0.25)
+    r = 8  # cells of 0.5 over [-2, 2]: indices 2..5 per axis lie inside [-1, 1]
+    grid = OccupancyGrid(torch.tensor([-1.0, -1, -1, 1, 1, 1]), resolution=r, contraction="l2")
+    occs = torch.full((r ** 3,), -1.0)
+    bits = torch.zeros(r ** 3, dtype=torch.bool)
+
+    def cell(i, j, k, density, occupied):
+        index = (i * r + j) * r + k
+        occs[index], bits[index] = density, occupied
+
+    cell(2, 2, 2, 3.0, True)    # inside
+    cell(5, 3, 4, 1.0, False)   # inside, not occupied
+    cell(6, 3, 3, 4.0, True)    # outside (x centre 1.25)
+    cell(0, 7, 0, 0.0, True)    # outside, no density
+    packed = torch.zeros(r ** 3 // 8, dtype=torch.uint8)
+    for index in torch.nonzero(bits).flatten().tolist():
+        packed[index >> 3] |= 1 << (index & 7)
+    grid.occs.copy_(occs)
+    grid.bitfield.copy_(packed)
+    density, cells = probe.shares_inside(grid)
+    assert abs(density - 4.0 / 8.0) < 1e-6
+    assert abs(cells - 1.0 / 3.0) < 1e-6
 
 
 def test_a_probe_out_of_seconds_starts_again_on_the_seconds_left(sky, monkeypatch):
-    """A probe of 10^6 steps ends once its steps at the pace of steps 5 to 10 fill its share of
+    """A probe of 10^6 steps ends once its steps at the pace of steps 10 to 20 fill its share of
     the budget; the seconds it spent count in the budget of the model trained after it."""
     monkeypatch.setattr(probe, "PROBE_STEPS", 10**6)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
@@ -124,9 +136,19 @@ def test_a_probe_out_of_seconds_starts_again_on_the_seconds_left(sky, monkeypatc
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.1)
     trainer, seen = probe.probed_trainer(sky, small(seconds=20.0, contraction_fit="probe"), "cpu")
     assert 10 <= seen.steps < 10**4 and seen.share is not None and trainer.step_count == 0
-    assert 1.0 <= seen.seconds < 20.0  # about its 2 s (the pace is read over steps 5 to 10)
+    assert 1.0 <= seen.seconds < 20.0  # about its 2 s (the pace is read at the readouts of steps 10 and 20)
     assert trainer.train_seconds == pytest.approx(seen.seconds)
     assert trainer.config.seconds == pytest.approx(20.0 - seen.seconds)
+
+
+def test_a_probe_ends_at_its_seconds_after_the_first_step_before_its_pace_is_read(sky, monkeypatch):
+    monkeypatch.setattr(probe, "PROBE_STEPS", 10**6)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 10**5)
+    monkeypatch.setattr(probe, "PACE_FROM", 10**6)  # no pace read
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.1)
+    trainer, seen = probe.probed_trainer(sky, small(seconds=20.0, contraction_fit="probe"), "cpu")
+    assert seen.fit == "cameras" and seen.share is None and seen.steps % 10 == 0  # ended at a readout
+    assert 2.0 <= seen.seconds < 20.0 and trainer.config.seconds == pytest.approx(20.0 - seen.seconds)
 
 
 def test_a_probe_whose_first_steps_load_kernels_for_longer_than_its_seconds_runs_its_steps(sky, monkeypatch):
@@ -137,7 +159,7 @@ def test_a_probe_whose_first_steps_load_kernels_for_longer_than_its_seconds_runs
     def cold_first_step(self, progress=0.0):
         stats = step(self, progress)
         if self.step_count == 1:
-            self.train_seconds += 10.0  # a first step of 10 s against the probe's 6 s
+            self.train_seconds += 100.0  # a first step of 100 s against the probe's 60 s
         return stats
 
     monkeypatch.setattr(Trainer, "step", cold_first_step)
@@ -145,14 +167,14 @@ def test_a_probe_whose_first_steps_load_kernels_for_longer_than_its_seconds_runs
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 20)
     monkeypatch.setattr(probe, "PACE_FROM", 10)
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.1)
-    trainer, seen = probe.probed_trainer(sky, small(seconds=60.0, contraction_fit="probe"), "cpu")
-    assert seen.steps == 30 and seen.share is not None and seen.seconds > 10.0
+    trainer, seen = probe.probed_trainer(sky, small(seconds=600.0, contraction_fit="probe"), "cpu")
+    assert seen.steps == 30 and seen.share is not None and seen.seconds > 100.0
 
 
 @pytest.mark.parametrize("probe_steps, min_steps, probed", [(10**5, 10**5, 20), (30, 25, 30)])
 def test_a_probe_whose_pace_cannot_reach_its_least_steps_ends_early(sky, monkeypatch, probe_steps, min_steps, probed):
     """The pace read over steps 10 to 20 says whether ``PROBE_MIN_STEPS`` fit in the probe's
-    seconds: 10^5 do not (it ends at step 20, long before its 60 s), 25 do (it runs to its 30)."""
+    seconds: 10^5 do not (it ends at step 20, long before its 90 s), 25 do (it runs to its 30)."""
     monkeypatch.setattr(probe, "PROBE_STEPS", probe_steps)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", min_steps)
     monkeypatch.setattr(probe, "PACE_FROM", 10)
@@ -171,10 +193,28 @@ def test_a_budget_too_short_to_tell_trains_with_the_box_holding_the_cameras(sky,
                                        "contracted, the inner box holding the cameras\n")
 
 
-def test_the_probe_is_left_out_where_nothing_is_contracted(sky):
-    trainer, seen = probe.probed_trainer(sky, TrainConfig(steps=5, contraction=None, contraction_fit="probe", **SMALL),
-                                         "cpu")
-    assert seen is None and trainer.config.contraction is None
+def test_the_probe_is_left_out_where_nothing_is_contracted_or_the_files_contract(sky, monkeypatch):
+    trainer, seen = probe.probed_trainer(sky, small(steps=5, contraction_fit="probe", aabb_scale=None), "cpu")
+    assert seen is not None  # the scene's rule contracts it; a 5-step budget is too short to tell
+    with pytest.raises(ValueError, match="decides whether to contract: leave contraction at auto"):
+        TrainConfig(contraction=None, contraction_fit="probe").check()
+    monkeypatch.setattr(sky, "contraction", "l2")  # the scene's files name their contraction: no probe
+    trainer, seen = probe.probed_trainer(sky, small(steps=5, contraction_fit="probe"), "cpu")
+    assert seen is None and trainer.config.contraction == "l2" and trainer.config.contraction_fit == "cameras"
+
+
+def test_a_stop_in_steps_alone_counts_the_bar_in_steps_under_a_time_budget(sky, monkeypatch):
+    from ngp_warp.training import trainer as trainer_module
+
+    bars = []
+    real = trainer_module.progress_bar
+    monkeypatch.setattr(trainer_module, "progress_bar", lambda **kw: (bars.append(kw), real(**kw))[1])
+    trainer = Trainer(sky, small(seconds=60.0), device="cpu")
+    trainer.train(show_progress=False, stop=(3, None), desc="probe")  # the probe's bar: its steps
+    spent = trainer.train_seconds
+    trainer.train(show_progress=False, stop=(6, 30.0))  # a stop in seconds too: the bar counts seconds
+    assert (bars[0]["total"], bars[0]["unit"]) == (3, "step") and bars[1]["unit"] == "s"
+    assert bars[1]["total"] == pytest.approx(30.0 - spent)
 
 
 def test_a_stopped_training_runs_the_schedule_of_the_whole_budget(sky, monkeypatch):
@@ -204,6 +244,12 @@ def test_probe_needs_the_probed_trainer_and_is_refused_before_loading_where_it_c
     assert main(["train", str(not_a_scene), "--out", str(tmp_path / "run"), "--steps", "8", "--device", "cpu",
                  "--set", "contraction_fit=probe"]) == 2
     assert "contraction_fit=probe: not supported with data-parallel training" in capsys.readouterr().err
+    from ngp_warp.cli import train as train_cli
+
+    given = []
+    monkeypatch.setattr(train_cli, "train_and_report", lambda scene, out, args, config: given.append(config))
+    assert main(["train", str(not_a_scene), "--out", str(tmp_path / "run"), "--steps", "8", "--device", "cpu"]) == 0
+    assert given[0].contraction_fit == "cameras"  # data-parallel ranks do not probe
     with pytest.raises(UserError, match="not supported by view"):
         refuse_probe(TrainConfig(contraction_fit="probe"), "by view (it trains live)")
     refuse_probe(TrainConfig(contraction_fit="seen"), "by view")  # other fits pass
@@ -237,12 +283,12 @@ def test_train_says_what_the_probe_saw_and_counts_its_seconds_as_training(sky_fo
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.75)
     monkeypatch.setattr(probe, "PROBE_SCORE", -1.0)  # an object: bounded
     out = tmp_path / "run"
-    sets = ["contraction_fit=probe", "grid_resolution=16", "field.log2_hashmap_size=12", "field.n_levels=4",
-            "field.hidden=16"]
+    sets = ["contraction_fit=probe", "aabb_scale=2", "grid_resolution=16", "field.log2_hashmap_size=12",
+            "field.n_levels=4", "field.hidden=16", "field.appearance_dim=0"]  # no codes to fit: a short evaluation
     assert main(["train", str(sky_folder), "--out", str(out), "--steps", "8", "--no-video", "--device", "cpu",
                  "--quiet", "--target-samples", "1024", *[a for kv in sets for a in ("--set", kv)]]) == 0
     err = capsys.readouterr().err
-    assert "contraction_fit=probe: " in err and "after 6 steps" in err and "bounded in a box of 32" in err
+    assert "contraction_fit=probe: " in err and "after 6 steps" in err and "bounded in a box of 2," in err
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["steps"] == 8  # the new model's; the probe's 6 steps are not counted
     assert metrics["wall_seconds"]["training"] >= metrics["train_seconds"]  # the probe's seconds included

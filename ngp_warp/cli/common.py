@@ -145,9 +145,10 @@ def no_probe(config):
 
 
 def _new_probed_trainer(scene, config, device: str, show_progress: bool):
-    """:func:`new_trainer`, its ``contraction_fit`` "probe" decided by a short training (one line
-    on stderr says what it saw), and the probe's seconds of training (0 without one). Ctrl-C
-    during the probe says that nothing was saved; a probe that diverges is a UserError."""
+    """:func:`new_trainer`, its ``contraction_fit`` "auto" or "probe" decided by a short training
+    where it probes (one line on stderr says what it saw), and the probe's seconds of training (0
+    without one). Ctrl-C during the probe says that nothing was saved; a probe that diverges is a
+    UserError."""
     from ngp_warp.training.contraction_probe import probed_trainer
     from ngp_warp.training.trainer import TrainingDiverged
 
@@ -160,14 +161,21 @@ def _new_probed_trainer(scene, config, device: str, show_progress: bool):
     except TrainingDiverged as e:
         raise UserError(f"{e} (during the contraction probe; nothing was saved)") from None
     if probe is not None:
-        how = (f"bounded in a box of {trainer.config.aabb_scale}, as an object before a distant backdrop"
-               if probe.fit == "bounded" else "contracted, the inner box holding the cameras")
-        spent = f"{probe.steps} steps in {probe.seconds:.1f} s"
-        saw = (f"{probe.share:.2f} of the density and {probe.cells:.2f} of the occupied cells inside the box the "
-               f"cameras see after {spent}" if probe.share is not None
-               else f"the budget is too short for a probe{f' (ended after {spent})' if probe.steps else ''}")
-        print(f"contraction_fit={config.contraction_fit}: {saw}: training {how}", file=sys.stderr)
+        print(_probe_line(probe, (config or trainer.config).contraction_fit, trainer.config.aabb_scale), file=sys.stderr)
     return trainer, 0.0 if probe is None else probe.seconds
+
+
+def _probe_line(probe, fit: str, aabb_scale: int | None) -> str:
+    """One line: what the contraction probe (a ``ProbeResult``) of ``contraction_fit`` ``fit`` saw
+    and how the run trains (bounded in the box of ``aabb_scale``, None for the scene files')."""
+    box = "the scene files' box" if aabb_scale is None else f"a box of {aabb_scale}"
+    how = (f"bounded in {box}, as an object before a distant backdrop" if probe.fit == "bounded"
+           else "contracted, the inner box holding the cameras")
+    spent = f"{probe.steps} steps in {probe.seconds:.1f} s"
+    saw = (f"{probe.share:.2f} of the density and {probe.cells:.2f} of the occupied cells inside the box the "
+           f"cameras see after {spent}" if probe.share is not None
+           else f"the budget is too short for a probe{f' (ended after {spent})' if probe.steps else ''}")
+    return f"contraction_fit={fit}: {saw}: training {how}"
 
 
 def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:

@@ -44,7 +44,7 @@ class TrainConfig:
                                         # or what the median camera sees at the centre ("seen"); "probe":
                                         # bounded or "cameras", by a short training (training.contraction_probe);
                                         # "auto": the probe where the scene's rule contracts and the run can
-                                        # train one (ngp-warp train, demo, fit-many on one GPU), else "cameras"
+                                        # train one (train on one rank, fit-many), else "cameras"
     aabb_scale: int | str | None = "auto"  # the field's box, instant-ngp's aabb_scale (a power of two);
                                         # None: the scene files'; "auto": per scene (scene_defaults)
     early_stop_eps: float = 1e-4
@@ -92,6 +92,9 @@ class TrainConfig:
                                      "near_gradient_distance"),
                        optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold",
                                  "distortion_weight"))
+        if self.contraction_fit == PROBE_FIT and self.contraction != "auto":
+            raise ValueError(f"contraction_fit 'probe' decides whether to contract: leave contraction at auto "
+                             f"(got {self.contraction!r}), or give contraction_fit cameras or seen")
         if self.grid_resolution < MIN_GRID_RESOLUTION:
             raise ValueError(f"grid_resolution must be at least {MIN_GRID_RESOLUTION}: a grid of "
                              f"{self.grid_resolution}³ cells cannot tell empty space from the subject")
@@ -255,7 +258,7 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     if kind is not None and config.contraction_fit == PROBE_FIT:
         raise ValueError("contraction_fit 'probe' is decided by a short training, which ngp-warp train, demo "
                          "and fit-many run (ngp_warp.training.contraction_probe.probed_trainer); here use "
-                         "'cameras' or 'seen'")
+                         "'auto', 'cameras' or 'seen'")
     if config.contraction_fit == AUTO_FIT:  # no probe here: the box holding the cameras
         config = dataclasses.replace(config, contraction_fit="cameras")
     aabb_scale = choose_aabb_scale(config.aabb_scale, scene, kind)

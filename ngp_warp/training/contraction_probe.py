@@ -50,7 +50,6 @@ PROBE_BUDGET_SHARE = 0.15  # the probe takes at most this share of the run's ste
 PROBE_SCORE = 1.25  # density share + occupied-cell share inside the box: an object from this on (module docstring)
 OBJECT_AABB_SCALE = 32  # an object before a distant backdrop trains bounded in this box (colmap2nerf's default)
 PACE_FROM = 50  # the probe's pace is read from this step on (the first steps load kernels and capture graphs)
-PACE_MARGIN = 1.5  # early steps capture graphs of new sizes and march a fuller grid: a probe ends this much too slow
 
 
 @dataclasses.dataclass
@@ -112,50 +111,55 @@ def _probe_length(config: TrainConfig) -> tuple[int, float | None]:
     return n, None if seconds is None else seconds * PROBE_BUDGET_SHARE
 
 
-def _spend(trainer: Trainer, steps: int, seconds: float) -> None:
-    """Take ``steps`` and ``seconds`` off ``trainer``'s budget (its config)."""
-    budget_steps, budget_seconds = trainer.config.budget()
-    if budget_steps is not None:
-        trainer.config.steps = max(budget_steps - steps, 0)
-    if budget_seconds is not None:
-        trainer.config.seconds = max(budget_seconds - seconds, 1e-9)
+def _spend(trainer: Trainer, seconds: float) -> None:
+    """Count ``seconds`` of training as spent by ``trainer``, in its clock and its time budget."""
+    trainer.train_seconds = seconds
+    if trainer.config.seconds is not None:
+        trainer.config.seconds = max(trainer.config.seconds - seconds, 1e-9)
 
 
 def _probe_over(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
-    """For :meth:`Trainer.train`'s ``until``: True at a step of :data:`PROBE_READS` whose shares
-    tell an object, or once the probe has spent ``seconds`` (never
-    without a time limit) at the pace of its steps from :data:`PACE_FROM` on (read over as many
-    again), or once that pace says :data:`PROBE_MIN_STEPS` steps would take more than
-    :data:`PACE_MARGIN` times ``seconds``, so a probe that cannot tell ends early. Its first steps
-    count at that pace, not at their own: they load and compile kernels and capture graphs, which
-    with a cold kernel cache took 6.4 s for the first step on an H100, more than a 60 s run's probe."""
+    """For :meth:`Trainer.train`'s ``until`` (never True for a step budget, ``seconds`` None,
+    except at a reading): True
+
+    * at a step of :data:`PROBE_READS` whose shares tell an object;
+    * once the probe has spent ``seconds`` after its first step, which loads and compiles the
+      kernels (with a cold kernel cache it took 6.4 s on an H100, more than a 60 s run's probe);
+    * once it has spent ``seconds`` at the pace of its steps from :data:`PACE_FROM` on (read
+      over as many again), its first steps counted at that pace: they capture graphs too;
+    * once that pace says that :data:`PROBE_MIN_STEPS` steps would take more than ``seconds``,
+      so a probe that cannot tell ends early."""
+    first: float | None = None  # training seconds after the first step
     start: tuple[int, float] | None = None  # (step, training seconds) where the pace is read from
 
     def over() -> bool:
-        nonlocal start
+        nonlocal first, start
         steps, clock = trainer.step_count, trainer.train_seconds
-        if steps in PROBE_READS and _tells_object(trainer.grid):
+        if steps in PROBE_READS and steps >= PROBE_MIN_STEPS and _tells_object(trainer.grid):
             return True
-        if seconds is None or steps < PACE_FROM:
+        if seconds is None:
             return False
-        if start is None:
-            start = (steps, clock)
+        first = clock if first is None else first
+        if clock - first >= seconds:
+            return True
+        if steps < PACE_FROM:
+            return False
+        start = (steps, clock) if start is None else start
         if steps < 2 * start[0]:
             return False
         pace = (clock - start[1]) / (steps - start[0])
-        return pace * steps >= seconds or pace * PROBE_MIN_STEPS > PACE_MARGIN * seconds
+        return pace * max(steps, PROBE_MIN_STEPS) >= seconds
 
     return over
 
 
 def _probes(config: TrainConfig, scene: Scene) -> bool:
-    """Whether ``config`` has ``scene`` probed: ``contraction_fit`` "probe" on a contracted
-    capture, or "auto" where the scene's own rule contracts it (``contraction`` "auto", no
-    contraction in its files)."""
-    if choose_contraction(config.contraction, scene) is None:
-        return False
+    """Whether ``config`` has ``scene`` probed: ``contraction_fit`` "probe" or "auto" where the
+    scene's own rule contracts it (``contraction`` "auto", no contraction in its files)."""
     own_rule = config.contraction == "auto" and scene.contraction is None
-    return config.contraction_fit == PROBE_FIT or (config.contraction_fit == AUTO_FIT and own_rule)
+    if not own_rule or choose_contraction(config.contraction, scene) is None:
+        return False
+    return config.contraction_fit in (PROBE_FIT, AUTO_FIT)
 
 
 def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None = None,
@@ -186,8 +190,7 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
         torch.cuda.empty_cache()
     chosen = _bounded(config) if bounded else cameras
     trainer = make_trainer(scene, chosen, device)
-    trainer.train_seconds = spent_seconds  # the probe's seconds count in a time budget
-    _spend(trainer, 0, spent_seconds)
+    _spend(trainer, spent_seconds)  # the probe's seconds count in a time budget
     return trainer, ProbeResult(share, cells, spent_steps, spent_seconds, "bounded" if bounded else "cameras")
 
 

@@ -10,10 +10,11 @@
   (:func:`cameras_surround_centre`) and whose images show more than a plain backdrop
   (:func:`plain_backdrop`), else none. Its inner box is the finest cascade's box, grown about
   its centre to hold every training camera (``contraction_fit`` "seen": to what the median
-  camera sees, which suits an object before a distant backdrop and costs a scene with content
-  all around, RESULTS.md; "probe": either, chosen by a short training,
-  :mod:`ngp_warp.training.contraction_probe`); the field learns the colour at infinity
-  (``FieldConfig.environment``).
+  camera sees); the field learns the colour at infinity (``FieldConfig.environment``). Where
+  this rule contracts, ``contraction_fit`` "auto" (the default, where a run can train a probe)
+  and "probe" tell by a short training an object before a distant backdrop, which then trains
+  bounded in a box of 32, from a scene with content around its cameras, which trains contracted
+  (:mod:`ngp_warp.training.contraction_probe`).
 * Field box: a COLMAP capture of an object on a plain backdrop that trains bounded gets the box
   its cameras see (:func:`choose_aabb_scale`), not the one holding its cameras.
 * Occupancy threshold: instant-ngp's 0.01 (optical thickness of one step) on NeRF-synthetic

@@ -235,7 +235,7 @@ class Trainer:
         stop_seconds = None if stop[1] is None else stop[1] - start_seconds
         last_checkpoint = time.monotonic()
         # the bar counts steps, or seconds where only time ends the run (a time budget, no stop in steps alone)
-        count_steps = bool(steps) or (stop_steps is not None and stop_seconds is None)
+        count_steps = steps is not None or (stop_steps is not None and stop_seconds is None)
 
         def done() -> float:
             return self.step_count - start_step if count_steps else round(self.train_seconds - start_seconds, 1)
