@@ -25,7 +25,7 @@ run's step count stays the model's own), while a time budget counts the probe's 
 schedule runs over the whole time). A budget whose 15 % is under :data:`PROBE_MIN_STEPS`
 steps trains with ``"cameras"`` without a probe, or after one that ran out of seconds first; a
 probe whose pace says it is far too slow ends early (on 2 CPU cores, at about 8 steps a second,
-a run under about 220 s).
+a run under about 330 s).
 """
 
 from __future__ import annotations
