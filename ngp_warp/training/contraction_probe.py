@@ -119,8 +119,7 @@ def _spend(trainer: Trainer, seconds: float) -> None:
 
 
 def _probe_over(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
-    """For :meth:`Trainer.train`'s ``until`` (never True for a step budget, ``seconds`` None,
-    except at a reading): True
+    """For :meth:`Trainer.train`'s ``until`` (checked at its readouts, step 1 among them): True
 
     * at a step of :data:`PROBE_READS` whose shares tell an object;
     * once the probe has spent ``seconds`` after its first step, which loads and compiles the
@@ -128,7 +127,9 @@ def _probe_over(trainer: Trainer, seconds: float | None) -> Callable[[], bool]:
     * once it has spent ``seconds`` at the pace of its steps from :data:`PACE_FROM` on (read
       over as many again), its first steps counted at that pace: they capture graphs too;
     * once that pace says that :data:`PROBE_MIN_STEPS` steps would take more than ``seconds``,
-      so a probe that cannot tell ends early."""
+      so a probe that cannot tell ends early.
+
+    Without a time limit (``seconds`` None: a step budget) only a reading ends it."""
     first: float | None = None  # training seconds after the first step
     start: tuple[int, float] | None = None  # (step, training seconds) where the pace is read from
 
