@@ -30,6 +30,7 @@ codes are on), steps, ms per step, trained samples per ray, the contraction the 
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import math
 import statistics
@@ -153,7 +154,8 @@ def summary(runs: list[dict]) -> dict:
     }
     out = {k: None if v is None else statistics.fmean(v) for k, v in columns.items()}
     out["whole_sd"] = statistics.stdev(columns["whole"]) if len(ok) > 1 else 0.0
-    out["contraction"] = ok[0]["contraction"]
+    used = collections.Counter(r["contraction"] for r in ok)  # a probe may choose differently from run to run
+    out["contraction"] = ", ".join(k if len(used) == 1 else f"{k} ×{n}" for k, n in used.items())
     out["runs"] = len(ok)
     return out
 

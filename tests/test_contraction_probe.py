@@ -291,6 +291,7 @@ def test_train_says_what_the_probe_saw_and_counts_its_seconds_as_training(sky_fo
     assert "contraction_fit=probe: " in err and "after 6 steps" in err and "bounded in a box of 2," in err
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["steps"] == 8  # the new model's; the probe's 6 steps are not counted
+    assert metrics["contraction_probe"]["fit"] == "bounded" and metrics["contraction_probe"]["steps"] == 6
     assert metrics["wall_seconds"]["training"] >= metrics["train_seconds"]  # the probe's seconds included
 
 

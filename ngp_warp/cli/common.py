@@ -146,9 +146,9 @@ def no_probe(config):
 
 def _new_probed_trainer(scene, config, device: str, show_progress: bool):
     """:func:`new_trainer`, its ``contraction_fit`` "auto" or "probe" decided by a short training
-    where it probes (one line on stderr says what it saw), and the probe's seconds of training (0
-    without one). Ctrl-C during the probe says that nothing was saved; a probe that diverges is a
-    UserError."""
+    where it probes (one line on stderr says what it saw), and what the probe saw (a
+    ``ProbeResult``, None without one). Ctrl-C during the probe says that nothing was saved; a
+    probe that diverges is a UserError."""
     from ngp_warp.training.contraction_probe import probed_trainer
     from ngp_warp.training.trainer import TrainingDiverged
 
@@ -162,7 +162,7 @@ def _new_probed_trainer(scene, config, device: str, show_progress: bool):
         raise UserError(f"{e} (during the contraction probe; nothing was saved)") from None
     if probe is not None:
         print(_probe_line(probe, (config or trainer.config).contraction_fit, trainer.config.aabb_scale), file=sys.stderr)
-    return trainer, 0.0 if probe is None else probe.seconds
+    return trainer, probe
 
 
 def _probe_line(probe, fit: str, aabb_scale: int | None) -> str:
@@ -209,7 +209,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
 
     out = folder.path
     ckpt = out / CHECKPOINT
-    downscale, probe_seconds = args.downscale or 1, 0.0
+    downscale, probe = args.downscale or 1, None
     if resume:
         trainer, record = load_trainer(ckpt, device=device, scene_path=scene_path)  # the same views
         if args.downscale not in (None, record["downscale"]):
@@ -220,7 +220,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
     else:
         _check_video(args, scene)  # before a probe trains
-        trainer, probe_seconds = _new_probed_trainer(scene, config, device, show_progress=not args.quiet)
+        trainer, probe = _new_probed_trainer(scene, config, device, show_progress=not args.quiet)
     if getattr(args, "data_parallel", False):  # rank 0 alone reports, saves and evaluates
         from ngp_warp.training.distributed import is_main_rank, make_data_parallel
 
@@ -245,7 +245,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         _check_video(args, scene)
     clock = WallClock(getattr(args, "started", time.perf_counter()))
     clock.mark("start_up")
-    clock.shift(probe_seconds, "start_up", "training")  # the probe trained during the start-up
+    clock.shift(0.0 if probe is None else probe.seconds, "start_up", "training")  # the probe trained during the start-up
     _train(trainer, save, folder, args, scene_path)
     clock.mark("training")
     save()
@@ -264,7 +264,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         print(f"orbit video: {video}", file=sys.stderr)
         clock.mark("video")
     print(clock.summary(), file=sys.stderr)
-    return write_metrics(out, {**metrics, "wall_seconds": clock.seconds})
+    probed = {} if probe is None else {"contraction_probe": dataclasses.asdict(probe)}  # what it saw and chose
+    return write_metrics(out, {**metrics, **probed, "wall_seconds": clock.seconds})
 
 
 def _train(trainer, save, folder, args, scene_path: Path) -> None:
