@@ -15,6 +15,7 @@ spreads them beyond it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 
 import torch
@@ -29,9 +30,8 @@ def probe_shares(scene, seed: int, marks: list[int], seconds: float, device: str
                  config: TrainConfig | None = None) -> list[dict]:
     """One probe's training of ``scene`` to ``max(marks)`` steps: a row per mark with ``step``,
     ``share`` (density), ``cells`` (occupied cells), ``score`` (their sum) and ``seconds``.
-    ``config`` (its seed, budget and ``contraction_fit`` replaced) sets the sizes."""
-    config = TrainConfig() if config is None else config
-    config.seed, config.seconds, config.steps, config.contraction_fit = seed, seconds, None, "seen"
+    ``config`` (left as it is; a copy's seed, budget and ``contraction_fit`` replaced) sets the sizes."""
+    config = dataclasses.replace(config or TrainConfig(), seed=seed, seconds=seconds, steps=None, contraction_fit="seen")
     trainer = Trainer(scene, config, device=device)
     rows = []
 

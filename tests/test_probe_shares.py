@@ -23,6 +23,7 @@ def test_probe_shares_reads_both_shares_at_each_mark(tmp_path, capsys):
     config.target_samples, config.grid_resolution = 1 << 10, 16
     config.field.log2_hashmap_size, config.field.n_levels, config.field.hidden = 12, 4, 16
     rows = probe_shares.probe_shares(load_scene(sky), 3, [10, 20], 600.0, "cpu", config)
+    assert (config.seed, config.seconds, config.contraction_fit) == (0, None, "auto")  # the caller's config untouched
     assert [r["step"] for r in rows] == [10, 20] and all(r["seed"] == 3 for r in rows)
     for r in rows:
         assert 0.0 <= r["share"] <= 1.0 and 0.0 <= r["cells"] <= 1.0 and r["score"] == r["share"] + r["cells"]

@@ -161,7 +161,8 @@ def _new_probed_trainer(scene, config, device: str, show_progress: bool):
     except TrainingDiverged as e:
         raise UserError(f"{e} (during the contraction probe; nothing was saved)") from None
     if probe is not None:
-        print(_probe_line(probe, (config or trainer.config).contraction_fit, trainer.config.aabb_scale), file=sys.stderr)
+        fit = (config or trainer.config).contraction_fit
+        print(_probe_line(probe, fit, trainer.config.aabb_scale), file=sys.stderr)
     return trainer, probe
 
 
@@ -245,7 +246,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         _check_video(args, scene)
     clock = WallClock(getattr(args, "started", time.perf_counter()))
     clock.mark("start_up")
-    clock.shift(0.0 if probe is None else probe.seconds, "start_up", "training")  # the probe trained during the start-up
+    probe_seconds = 0.0 if probe is None else probe.seconds
+    clock.shift(probe_seconds, "start_up", "training")  # the probe trained during the start-up
     _train(trainer, save, folder, args, scene_path)
     clock.mark("training")
     save()
