@@ -260,3 +260,27 @@ def test_a_contracted_checkpoint_rebuilds_its_inner_box_or_says_it_cannot(tiny_s
     with pytest.raises(CheckpointError, match="another contraction box than the run trained in") as err:
         load_trainer(tmp_path / "c.pt", device="cpu")
     assert "\n" not in str(err.value)
+
+
+def test_near_setting_starts_the_march_and_the_distortion_spacing_there_and_is_checkpointed(tiny_scene, tmp_path):
+    scene = load_scene(tiny_scene)
+    assert Trainer(scene, tiny_config(1), device="cpu").config.near == scene.near  # unset: the scene's
+    cfg = tiny_config(1)
+    cfg.near, cfg.distortion_weight = 2.5, 0.5
+    trainer = Trainer(scene, cfg, device="cpu")
+    assert trainer.model.march.near == trainer.scene.near == 2.5 != scene.near
+    seen = []
+
+    def recording(phase, fn):  # the distortion loss's normalised distance s = 1 − near/t takes this near
+        def call(*args, **kwargs):
+            if phase == "distortion":
+                seen.append(args[-1])
+            return fn(*args, **kwargs)
+        return call
+
+    trainer.instrument(recording)
+    trainer.step()
+    assert seen == [2.5]
+    save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+    loaded = load_trainer(tmp_path / "c.pt", device="cpu")[0]
+    assert loaded.config.near == 2.5 and loaded.model.march.near == 2.5

@@ -71,6 +71,8 @@ class TrainConfig:
     backdrop_alpha: bool = False        # train opaque images of an object on white as if the white were
                                         # transparent (alpha 0 where every channel is 255), over random
                                         # backgrounds (an experiment: see docs/captures.md)
+    near: float | None = None           # rays start this far from their camera, in the scene's lengths;
+                                        # None: the scene's (instant-ngp's 0.1 of its unit cube)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
     camera_lr: float = 1e-4             # its Adam learning rate (fox: instant-ngp's 1e-3 drifted 0.4°)
     field: FieldConfig = field(default_factory=FieldConfig)
@@ -87,11 +89,11 @@ class TrainConfig:
                 raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {value!r}")
         check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
                                      "steps_per_diagonal"),
-                       positive=("seconds", "lr", "occupancy_threshold", "camera_lr"),
+                       positive=("seconds", "lr", "occupancy_threshold", "camera_lr", "near"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight",
                                      "near_gradient_distance"),
                        optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold",
-                                 "distortion_weight"))
+                                 "distortion_weight", "near"))
         if self.contraction_fit == PROBE_FIT and self.contraction != "auto":
             raise ValueError(f"contraction_fit 'probe' decides whether to contract: leave contraction at auto "
                              f"(got {self.contraction!r}), or give contraction_fit cameras or seen")
@@ -267,8 +269,9 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     threshold = config.occupancy_threshold
     threshold = occupancy_threshold(scene) if threshold is None else threshold
     distortion = distortion_weight(scene, kind) if config.distortion_weight is None else config.distortion_weight
+    near = scene.near if config.near is None else config.near
     config = dataclasses.replace(config, contraction=kind, aabb_scale=aabb_scale, cone_angle=cone, occupancy_threshold=threshold,
-                                 distortion_weight=distortion)
+                                 distortion_weight=distortion, near=near)
     field_config = config.field
     if field_config.appearance_dim is None:
         field_config = dataclasses.replace(field_config, appearance_dim=appearance_dim(scene))

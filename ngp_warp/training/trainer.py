@@ -52,7 +52,7 @@ class Trainer:
     def __init__(self, scene: Scene, config: TrainConfig | None = None, device: str | None = None):
         self.device = torch.device(device or default_device())
         self.config = cfg = resolve_defaults(config or TrainConfig(), scene, self.device.type)
-        self.scene = scene = scene.with_aabb_scale(cfg.aabb_scale)
+        self.scene = scene = dataclasses.replace(scene.with_aabb_scale(cfg.aabb_scale), near=cfg.near)
         check_fits(cfg, scene, self.device)  # SettingsTooLarge before allocating
         torch.manual_seed(cfg.seed)
         train = scene.train
