@@ -70,6 +70,18 @@ def test_contracted_model_is_built_around_the_contraction_box(unbounded_scene):
     assert without.view_background == 0.0 and torch.equal(background, torch.zeros_like(background))
 
 
+def test_a_bounded_field_with_an_environment_fits_opaque_images_over_it(unbounded_scene):
+    trainer = Trainer(unbounded_scene, apply_overrides(small_config(), ["contraction=none", "field.environment=true"]),
+                      device="cpu")
+    assert trainer.model.grid.contraction is None and trainer.field.environment is not None
+    assert trainer.black_background and trainer.view_background is None
+    _, rays_d, _, background = trainer.sample_batch(512)
+    assert background.requires_grad  # learned through the loss, as a contracted field's
+    torch.testing.assert_close(background, trainer.field.background(rays_d))
+    plain = Trainer(unbounded_scene, apply_overrides(small_config(), ["contraction=none"]), device="cpu")
+    assert plain.field.environment is None and not plain.black_background and plain.view_background == 1.0
+
+
 def test_the_environment_starts_at_the_images_border_colour(unbounded_scene):
     trainer = Trainer(unbounded_scene, small_config(), device="cpu")
     images = trainer.train_split.images.float() / 255.0

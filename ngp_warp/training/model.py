@@ -98,10 +98,11 @@ class RadianceModel:
 
     @property
     def learns_background(self) -> bool:
-        """Whether the field models the far background (unbounded, contracted space): opaque
-        training images are then fitted and rendered over the field's learned environment
+        """Whether the field models the far background (unbounded, contracted space, or a
+        learned environment beyond a bounded box): opaque training images are then fitted and
+        rendered over the field's learned environment
         (:meth:`~ngp_warp.ops.field.NGPField.background`; black for a field without one), not white."""
-        return self.grid.contraction is not None
+        return self.grid.contraction is not None or self.field.environment is not None
 
     @contextlib.contextmanager
     def precision(self):
