@@ -238,7 +238,7 @@ def test_unset_supersample_follows_the_device(device, sub):
 
 @pytest.mark.parametrize("setting", ["steps=0", "seconds=-1", "target_samples=0", "grid_resolution=0", "lr=-1e-3",
                                      "cone_angle=-0.1", "weight_average=1", "supersample=0", "mlp_precision=fp16",
-                                     "occupancy_threshold=0", "occupancy_decay=1", "occupancy_decay=-0.5", "near=0", "near=-1"])
+                                     "occupancy_threshold=0", "occupancy_decay=1", "occupancy_decay=-0.5", "near=0", "near=-1", "near=1e5"])
 def test_config_check_names_the_setting_out_of_range(setting):
     cfg = apply_overrides(TrainConfig(), [setting])
     with pytest.raises(ValueError, match=setting.split("=")[0]):

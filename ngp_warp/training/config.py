@@ -11,6 +11,7 @@ from ngp_warp._checks import check_numbers
 from ngp_warp.data.loading import Scene
 from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, FieldConfig
 from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
+from ngp_warp.training.model import FAR
 from ngp_warp.training.scene_defaults import (AUTO_FIT, CONTRACTION_FITS, PROBE_FIT, appearance_dim, choose_aabb_scale,
                                              choose_contraction, cone_steps, contraction_box, distortion_weight,
                                              occupancy_threshold)
@@ -97,6 +98,8 @@ class TrainConfig:
         if self.contraction_fit == PROBE_FIT and self.contraction != "auto":
             raise ValueError(f"contraction_fit 'probe' decides whether to contract: leave contraction at auto "
                              f"(got {self.contraction!r}), or give contraction_fit cameras or seen")
+        if self.near is not None and self.near >= FAR:
+            raise ValueError(f"near must be below the rays' far distance {FAR:g}, got {self.near!r}")
         if self.grid_resolution < MIN_GRID_RESOLUTION:
             raise ValueError(f"grid_resolution must be at least {MIN_GRID_RESOLUTION}: a grid of "
                              f"{self.grid_resolution}³ cells cannot tell empty space from the subject")
