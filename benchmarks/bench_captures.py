@@ -16,6 +16,7 @@ Scenes (every 8th frame held out, sorted by name; ``capture_scenes.py`` writes t
   whose test split is the frames the captures hold out (the reference a capture form is held to);
 * ``unbounded-colmap``: the built-in unbounded scene (60 train + 10 test views) as a COLMAP model;
 * ``room-colmap``: the demo scene in its textured room (60 views at 100×100) as a COLMAP model;
+* ``hall-colmap``: the same in a wider room (wall at 10 against 6, other noise and cameras);
 * ``fox``: instant-ngp's fox as it ships (``--fox``).
 
 Columns: whole-image PSNR (with the nearest training camera's appearance code where codes are on;
@@ -46,19 +47,23 @@ sys.path.insert(0, str(Path(__file__).parent))
 from capture_scenes import write_capture  # noqa: E402
 
 SCENES = ("demo-colmap", "demo-colmap-sky", "demo-ngp", "demo-nerf-synthetic", "lego-colmap", "lego-colmap-sky",
-          "lego-ngp", "lego-nerf-synthetic", "unbounded-colmap", "room-colmap", "fox")
+          "lego-ngp", "lego-nerf-synthetic", "unbounded-colmap", "room-colmap", "hall-colmap", "fox")
 
 
-def write_room(folder: Path) -> Path:
-    """The demo scene in its textured room as an opaque NeRF-synthetic folder (50 train, 10 test)."""
+HALL_RADIUS = 10.0  # the hall's wall, against the room's 6 (cameras at 4 from the centre)
+
+
+def write_room(folder: Path, radius: float | None = None, seed: int = 0) -> Path:
+    """The demo scene in its textured room (wall ``radius``, the room's own if None; noise and
+    cameras by ``seed``) as an opaque NeRF-synthetic folder (50 train, 10 test)."""
     from ngp_warp.data import scene as demo
     from ngp_warp.data.scene_folder import write_split
 
     def render(c2w: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
-        return demo.render_room_views(c2w, intrinsics, 100, 100)
+        return demo.render_room_views(c2w, intrinsics, 100, 100, seed=seed, radius=radius or demo.ROOM_RADIUS)
 
     folder.mkdir(parents=True)
-    for split, c2w in zip(("train", "test"), demo.demo_cameras(50, 10, seed=0)):
+    for split, c2w in zip(("train", "test"), demo.demo_cameras(50, 10, seed=seed)):
         write_split(folder, split, c2w, 100, 100, demo.CAMERA_ANGLE_X, render, {})
     return folder
 
@@ -80,6 +85,8 @@ def source(name: str, work: Path, args) -> Path:
             from ngp_warp.data.scene_unbounded import write_unbounded_scene
 
             write_unbounded_scene(folder, n_train=60, n_test=10)
+        elif base == "hall":
+            write_room(folder, radius=HALL_RADIUS, seed=1)
         else:
             write_room(folder)
     return folder

@@ -149,3 +149,21 @@ def test_kernel_cuda_matches_cpu():
     gpu = demo.render_demo_views(c2w.cuda(), intr.cuda(), 24, 20, supersample=2).cpu()
     err = (cpu - gpu).abs().amax(-1)
     assert (err > 1e-3).float().mean() < 0.005
+
+
+def test_room_wall_radius_is_where_the_room_starts():
+    """A wider room keeps a camera that the default room's wall excludes, and moves the wall's
+    texture: at the same pixels the background differs while the objects stay."""
+    c2w = torch.from_numpy(demo.look_at(np.array([7.0, 0.0, 1.0]))[None]).float()
+    intrinsics = torch.tensor([[40.0, 40.0, 12.0, 12.0]])
+    with pytest.raises(ValueError, match="inside the room"):
+        demo.render_room_views(c2w, intrinsics, 24, 24)
+    hall = demo.render_room_views(c2w, intrinsics, 24, 24, radius=10.0)
+    assert hall.shape == (1, 24, 24, 3) and 0.0 <= float(hall.min()) and float(hall.max()) <= 1.0
+    near = torch.from_numpy(demo.look_at(np.array([3.0, 0.0, 1.0]))[None]).float()
+    room, wide = (demo.render_room_views(near, intrinsics, 24, 24, radius=r) for r in (demo.ROOM_RADIUS, 10.0))
+    alpha = demo.render_demo_views(near, intrinsics, 24, 24)[..., 3]
+    background = alpha < 1e-3
+    assert background.sum() > 50
+    assert (room - wide).abs()[background].mean() > 0.05
+    assert torch.allclose(room[alpha > 0.999], wide[alpha > 0.999], atol=1e-6)

@@ -156,17 +156,19 @@ def _value_noise(height: int, width: int, generator: torch.Generator) -> torch.T
     return (0.5 + noise[0] / (3.0 * noise.std())).clamp(0.0, 1.0)
 
 
-def _room_colour(origin: torch.Tensor, d: torch.Tensor, floor: torch.Tensor, wall: torch.Tensor) -> torch.Tensor:
+def _room_colour(origin: torch.Tensor, d: torch.Tensor, floor: torch.Tensor, wall: torch.Tensor,
+                 radius: float) -> torch.Tensor:
     """Colour [N, 3] where rays (``origin`` [3], directions ``d`` [N, 3]) meet the room: the
-    floor z = F (t = (F - o_z) / d_z) or the wall |o_xy + t d_xy| = R, whichever is nearer."""
+    floor z = F (t = (F - o_z) / d_z) or the wall |o_xy + t d_xy| = R (R = ``radius``), whichever
+    is nearer."""
     a = d[:, 0] ** 2 + d[:, 1] ** 2
     b = origin[0] * d[:, 0] + origin[1] * d[:, 1]
-    c = origin[0] ** 2 + origin[1] ** 2 - ROOM_RADIUS ** 2  # < 0: the camera is inside
+    c = origin[0] ** 2 + origin[1] ** 2 - radius ** 2  # < 0: the camera is inside
     t_wall = (-b + torch.sqrt(b * b - a * c)) / a.clamp_min(1e-12)
     t_floor = torch.where(d[:, 2] < 0, (ROOM_FLOOR - origin[2]) / d[:, 2].clamp(max=-1e-12), math.inf)
     p = origin + torch.minimum(t_wall, t_floor)[:, None] * d
     on_floor = t_floor < t_wall
-    floor_uv = p[:, :2] / ROOM_RADIUS  # grid_sample's [-1, 1] spans the floor's square
+    floor_uv = p[:, :2] / radius  # grid_sample's [-1, 1] spans the floor's square
     arc = torch.atan2(p[:, 1], p[:, 0]) / math.pi
     wall_uv = torch.stack([arc, 2.0 * (p[:, 2] - ROOM_FLOOR) / ROOM_WALL_HEIGHT - 1.0], -1)
 
@@ -179,11 +181,11 @@ def _room_colour(origin: torch.Tensor, d: torch.Tensor, floor: torch.Tensor, wal
 
 
 def render_room_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
-                      supersample: int = 2, seed: int = 0) -> torch.Tensor:
+                      supersample: int = 2, seed: int = 0, radius: float = ROOM_RADIUS) -> torch.Tensor:
     """The demo scene standing in a room whose floor and wall carry multi-scale noise, as a
     photograph of it would look: the objects' own textures are too plain for feature matching.
 
-    The floor (z = ``ROOM_FLOOR``) lies under every object and the wall (radius ``ROOM_RADIUS``)
+    The floor (z = ``ROOM_FLOOR``) lies under every object and the wall (radius ``radius``)
     beyond them, so for a camera inside the room each ray meets the room only behind the
     objects: rgb = alpha c_objects + (1 - alpha) c_room, where c_room is the mean over all of the
     pixel's rays (exact but at the objects' outlines). Each pixel averages ``supersample``²
@@ -196,18 +198,19 @@ def render_room_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, h
         width, height: image size in pixels.
         supersample: ss, rays per pixel side.
         seed: picks the room's noise.
+        radius: the wall's radius in scene units (the floor's texture spans its square).
 
     Returns:
         [V, H, W, 3] float32 RGB in [0, 1].
     """
     objects = render_demo_views(c2w, intrinsics, width, height, supersample)  # validates the arguments
     origins = c2w[:, :, 3].double()
-    if (origins[:, 2] <= ROOM_FLOOR).any() or (origins[:, :2].norm(dim=1) >= ROOM_RADIUS).any():
-        raise ValueError(f"every camera must be inside the room (z > {ROOM_FLOOR}, |xy| < {ROOM_RADIUS})")
+    if (origins[:, 2] <= ROOM_FLOOR).any() or (origins[:, :2].norm(dim=1) >= radius).any():
+        raise ValueError(f"every camera must be inside the room (z > {ROOM_FLOOR}, |xy| < {radius})")
     generator = torch.Generator().manual_seed(seed)
-    side = int(2 * ROOM_RADIUS * ROOM_TEXELS[0])
+    side = int(2 * radius * ROOM_TEXELS[0])
     floor = _value_noise(side, side, generator)
-    wall_texels = (int(ROOM_WALL_HEIGHT * ROOM_TEXELS[1]), int(2 * math.pi * ROOM_RADIUS * ROOM_TEXELS[1]))
+    wall_texels = (int(ROOM_WALL_HEIGHT * ROOM_TEXELS[1]), int(2 * math.pi * radius * ROOM_TEXELS[1]))
     wall = _value_noise(*wall_texels, generator)
     ss = supersample
     sub = (torch.arange(ss, dtype=torch.float64) + 0.5) / ss
@@ -218,7 +221,7 @@ def render_room_views(c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, h
         y, x = torch.meshgrid(-(w - cy) / fy, (u - cx) / fx, indexing="ij")
         d = torch.stack([x, y, -torch.ones_like(x)], -1).reshape(-1, 3) @ m[:, :3].T
         d = d / d.norm(dim=1, keepdim=True)
-        colour = _room_colour(m[:, 3], d, floor, wall).reshape(height, ss, width, ss, 3)
+        colour = _room_colour(m[:, 3], d, floor, wall, radius).reshape(height, ss, width, ss, 3)
         room[v] = colour.mean(dim=(1, 3)).float()
     alpha = objects[..., 3:]
     return alpha * objects[..., :3] + (1.0 - alpha) * room
