@@ -1,10 +1,14 @@
-"""LazyAdam: torch's Adam where every gradient is non-zero, its float64 twin where some are zero."""
+"""Adam: torch's Adam, and its state dicts. LazyAdam: torch's Adam where every gradient is
+non-zero, its float64 twin where some are zero."""
+
+import subprocess
+import sys
 
 import pytest
 import torch
 
 from ngp_warp._reference import optim as optim_ref
-from ngp_warp.ops.optim import LazyAdam
+from ngp_warp.ops.optim import Adam, LazyAdam
 
 
 def sparse_grads(n: int, steps: int, seed: int = 0) -> list[torch.Tensor]:
@@ -152,9 +156,78 @@ def test_kept_average_needs_a_decay_and_a_matching_tensor():
 
 
 @pytest.mark.parametrize("bad", [dict(lr=-1.0), dict(betas=(0.9, 1.0)), dict(eps=-1e-8), dict(weight_decay=-1.0)])
-def test_rejects_bad_settings(bad):
+@pytest.mark.parametrize("opt_cls", [Adam, LazyAdam])
+def test_rejects_bad_settings(bad, opt_cls):
     with pytest.raises(ValueError):
-        LazyAdam([torch.nn.Parameter(torch.zeros(4))], **bad)
+        opt_cls([torch.nn.Parameter(torch.zeros(4))], **bad)
+
+
+def adam_groups(dtype: torch.dtype, seed: int = 0) -> list[dict]:
+    """Two groups of random parameters, the second with L2 weight decay."""
+    g = torch.Generator().manual_seed(seed)
+    return [{"params": [torch.nn.Parameter(torch.randn(*s, generator=g).to(dtype)) for s in ((64, 32), (7,))]},
+            {"params": [torch.nn.Parameter(torch.randn(16, 64, generator=g).to(dtype))], "weight_decay": 0.3}]
+
+
+def adam_steps(opt, groups: list[dict], steps: range, seed: int = 1) -> None:
+    """Random float32 gradients (the same for every caller and dtype); the first parameter has
+    none at step 2, so the step skips it."""
+    params = [p for group in groups for p in group["params"]]
+    for i in steps:
+        g = torch.Generator().manual_seed(seed + i)
+        for k, p in enumerate(params):
+            grad = torch.randn(p.shape, generator=g) * 10.0 ** (k - 2)
+            p.grad = None if (i == 2 and k == 0) else grad.to(p.dtype)
+        opt.step()
+
+
+def test_adam_equals_torch_adam_in_float64():
+    ours, theirs = adam_groups(torch.float32), adam_groups(torch.float64)
+    kw = dict(lr=1e-2, betas=(0.9, 0.99), eps=1e-15)
+    adam_steps(Adam(ours, **kw), ours, range(6))
+    adam_steps(torch.optim.Adam(theirs, foreach=False, **kw), theirs, range(6))
+    start = adam_groups(torch.float64)
+    for a, b, p0 in zip(*([p for gr in x for p in gr["params"]] for x in (ours, theirs, start))):
+        assert (b - p0).abs().min() > 0  # every entry moved
+        torch.testing.assert_close(a.detach().double(), b.detach(), rtol=0, atol=2e-6)
+
+
+@pytest.mark.parametrize("saved_by", [Adam, torch.optim.Adam])
+def test_adam_resumes_from_a_state_dict_of_its_own_or_of_torchs(saved_by):
+    """A state saved after 3 steps resumes the trajectory of 6 straight steps: exactly from its own
+    state, to rounding from torch's (checkpoints written with torch.optim.Adam load)."""
+    kw = dict(lr=5e-3, betas=(0.9, 0.99), eps=1e-15)
+    straight = adam_groups(torch.float32)
+    adam_steps(Adam(straight, **kw), straight, range(6))
+    groups = adam_groups(torch.float32)
+    first = saved_by(groups, **kw)
+    adam_steps(first, groups, range(3))
+    resumed = Adam(groups, **kw)
+    resumed.load_state_dict(first.state_dict())
+    adam_steps(resumed, groups, range(3, 6))
+    tol = 0 if saved_by is Adam else 1e-6
+    for a, b in zip(*([p for gr in x for p in gr["params"]] for x in (groups, straight))):
+        torch.testing.assert_close(a.detach(), b.detach(), rtol=0, atol=tol)
+    with pytest.raises(ValueError, match="parameter groups"):
+        Adam(groups[:1], **kw).load_state_dict(first.state_dict())
+
+
+def test_training_neither_imports_torch_dynamo():
+    """Building and stepping the trainer's optimizers leaves torch._dynamo unimported (its import
+    is 1-2 s of start-up); torch.optim's Adam would import it."""
+    code = """
+import sys, torch
+from ngp_warp.ops.optim import Adam, LazyAdam
+p, q = torch.nn.Parameter(torch.randn(8)), torch.nn.Parameter(torch.randn(8))
+for opt, t in ((Adam([p], weight_decay=0.1), p), (LazyAdam([q]), q)):
+    t.grad = torch.randn(8)
+    opt.step()
+    opt.load_state_dict(opt.state_dict())
+assert "torch._dynamo" not in sys.modules, "imported torch._dynamo"
+torch.optim.Adam([p])
+assert "torch._dynamo" in sys.modules  # the check can tell
+"""
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
 
 
 def test_rejects_non_float32_parameters():
@@ -173,3 +246,10 @@ def test_cuda_matches_cpu():
     cpu_average = run_averaged(p0, grads, decays, lr=1e-2)[1]
     gpu_average = run_averaged(p0.cuda(), grads, decays, lr=1e-2)[1].cpu()
     torch.testing.assert_close(gpu_average, cpu_average, rtol=0, atol=1e-6)
+    cpu_groups, gpu_groups = adam_groups(torch.float32), adam_groups(torch.float32)
+    for group in gpu_groups:
+        group["params"] = [torch.nn.Parameter(p.detach().cuda()) for p in group["params"]]
+    adam_steps(Adam(cpu_groups, lr=1e-2), cpu_groups, range(4))
+    adam_steps(Adam(gpu_groups, lr=1e-2), gpu_groups, range(4))
+    for a, b in zip(*([p for gr in x for p in gr["params"]] for x in (gpu_groups, cpu_groups))):
+        torch.testing.assert_close(a.detach().cpu(), b.detach(), rtol=0, atol=1e-6)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 
 from ngp_warp.training.camera_refinement import CameraRefinement
+from ngp_warp.ops.optim import Adam
 from ngp_warp.data.cameras import generate_rays
 from ngp_warp.ops.field import NGPField
 from ngp_warp.training.trainer import Trainer
@@ -186,9 +187,9 @@ def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, dist
     px_all, py_all = (t.to(dev) for t in _left_half_pixels(width, height, iterations, rays_per_iteration, seed))
     with trainer.weights.averaged_in_field():
         code = field.appearance.weight.detach().mean(0).clone().requires_grad_(True)
-        adam = torch.optim.Adam([code], lr=lr)
+        adam = Adam([code], lr=lr)
         field_fn = _field_with_code(field, code) if pose is None else _field_with_code_and_positions(field, code)
-        pose_adam = None if pose is None else torch.optim.Adam([pose.omega, pose.tau], lr=POSE_LR, eps=1e-15)
+        pose_adam = None if pose is None else Adam([pose.omega, pose.tau], lr=POSE_LR, eps=1e-15)
         pose_index = torch.zeros(px_all.shape[1], dtype=torch.long, device=dev)  # every ray: the one pose
         for it, (px, py) in enumerate(zip(px_all, py_all)):
             n = px.shape[0]

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import torch
 
+from ngp_warp.ops.optim import Adam
+
 L2_PULL = 1e-4  # instant-ngp's extrinsic_l2_reg
 
 
@@ -80,9 +82,9 @@ class CameraRefinement(torch.nn.Module):
         rotations = rotation_matrices(self.omega)
         return torch.cat([rotations @ c2w[:, :, :3], (c2w[:, :, 3] + self.tau)[:, :, None]], dim=-1)
 
-    def optimizer(self, lr: float) -> torch.optim.Adam:
+    def optimizer(self, lr: float) -> Adam:
         """Adam over ω and τ with learning rate ``lr`` and the L2 pull :data:`L2_PULL`."""
-        return torch.optim.Adam([self.omega, self.tau], lr=lr, weight_decay=L2_PULL, eps=1e-15)
+        return Adam([self.omega, self.tau], lr=lr, weight_decay=L2_PULL, eps=1e-15)
 
     @torch.no_grad()
     def summary(self) -> str:

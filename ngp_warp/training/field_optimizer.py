@@ -1,6 +1,6 @@
 """The optimizer state of a field: both Adams, the weight average and the deferred update.
 
-The MLPs step with torch's Adam; the hash table with :class:`ngp_warp.ops.optim.LazyAdam` (entries
+The MLPs step with :class:`ngp_warp.ops.optim.Adam` (torch's fused Adam); the hash table with :class:`ngp_warp.ops.optim.LazyAdam` (entries
 without gradient stand still), or with the MLPs' Adam when ``lazy_table=False``. The update of
 a step is deferred: :meth:`FieldOptimizer.defer` records its learning rate and average decay,
 :meth:`FieldOptimizer.flush` queues it, which the trainer does inside the next step's march
@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 
 from ngp_warp.ops.field import NGPField
-from ngp_warp.ops.optim import LazyAdam
+from ngp_warp.ops.optim import Adam, LazyAdam
 
 BETAS = (0.9, 0.99)
 EPS = 1e-15
@@ -34,7 +34,7 @@ class FieldOptimizer:
             average in its update pass; the MLPs' averages are lerped after each update.
 
     Attributes:
-        mlp_adam: ``torch.optim.Adam`` of the MLPs (and of the table unless ``lazy_table``).
+        mlp_adam: the :class:`~ngp_warp.ops.optim.Adam` of the MLPs (and of the table unless ``lazy_table``).
         table_adam: the table's ``LazyAdam``, or None.
         averaged: one float32 tensor per field parameter (shapes and order of
             ``field.parameters()``), or None without averaging; read it through
@@ -46,9 +46,7 @@ class FieldOptimizer:
         self.weight_average = weight_average
         table = {"params": list(field.encoding.parameters()), "weight_decay": 0.0}
         mlp = {"params": field.mlp_parameters(), "weight_decay": weight_decay}
-        fused = field.aabb.device.type == "cuda"  # one kernel for the whole update on the GPU
-        self.mlp_adam = torch.optim.Adam([mlp] if lazy_table else [table, mlp], lr=lr, betas=BETAS, eps=EPS,
-                                         fused=fused)
+        self.mlp_adam = Adam([mlp] if lazy_table else [table, mlp], lr=lr, betas=BETAS, eps=EPS)
         self.table_adam = LazyAdam(table["params"], lr=lr, betas=BETAS, eps=EPS) if lazy_table else None
         self._params = list(field.parameters())
         self.averaged = [p.detach().clone() for p in self._params] if weight_average > 0 else None
@@ -63,7 +61,7 @@ class FieldOptimizer:
                 self._lerped[0].append(average)
                 self._lerped[1].append(p.detach())  # shares the storage; keeps the lerp out of autograd
 
-    def optimizers(self) -> list[torch.optim.Optimizer]:
+    def optimizers(self) -> list[Adam | LazyAdam]:
         """The MLPs' Adam (and the table's, unless the table has its own LazyAdam)."""
         return [self.mlp_adam] if self.table_adam is None else [self.mlp_adam, self.table_adam]
 

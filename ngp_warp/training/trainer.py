@@ -19,6 +19,7 @@ from ngp_warp.progress import progress as progress_bar
 
 from ngp_warp.ops.batch import sample_pixels
 from ngp_warp.training.camera_refinement import CameraRefinement
+from ngp_warp.ops.optim import Adam
 from ngp_warp.training.config import TrainConfig, default_device, default_target_samples, resolve_defaults
 from ngp_warp.data.loading import Scene, Split
 from ngp_warp.ops.distortion import distortion_loss_packed
@@ -92,7 +93,7 @@ class Trainer:
             self.train_split.c2w, self.train_split.intrinsics, self.train_split.width, self.train_split.height
         )
 
-    def _camera_refinement(self, cfg: TrainConfig) -> tuple[CameraRefinement | None, torch.optim.Adam | None]:
+    def _camera_refinement(self, cfg: TrainConfig) -> tuple[CameraRefinement | None, Adam | None]:
         """The training images' pose corrections and their optimizer, with ``camera_refinement``
         (bounded fields only: positions reach a contracted field without gradient)."""
         if not cfg.camera_refinement:
