@@ -2,6 +2,7 @@
 that starts again bounded (an object before a distant backdrop) or contracted with the box
 holding the cameras, on the budget left."""
 
+import dataclasses
 import importlib.util
 import json
 from pathlib import Path
@@ -73,9 +74,10 @@ def test_the_probe_starts_again_bounded_or_contracted_on_the_budget_left(sky, mo
     assert 0.0 <= seen.share <= 1.0 and 0.0 <= seen.cells <= 1.0 and seen.seconds > 0
     assert (trainer.step_count, trainer.config.steps) == (0, 12)  # the new model takes the whole step budget
     assert trainer.train_seconds == pytest.approx(seen.seconds)  # the probe's seconds count
-    if chosen == "bounded":  # instant-ngp's cascades in colmap2nerf's box, no contraction or environment
+    if chosen == "bounded":  # instant-ngp's cascades in colmap2nerf's box, no contraction, a learned backdrop
         assert trainer.config.contraction is None and trainer.config.aabb_scale == probe.OBJECT_AABB_SCALE == 32
-        assert trainer.grid.levels == 6 and not trainer.config.field.environment
+        assert trainer.grid.levels == 6 and trainer.config.field.environment and trainer.field.environment is not None
+        assert trainer.model.learns_background
     else:
         inner = Trainer(sky, small(steps=1, contraction_fit="cameras"), device="cpu").grid.inner_aabb_host
         assert trainer.config.contraction == "l2" and trainer.grid.inner_aabb_host == pytest.approx(inner)
@@ -83,13 +85,16 @@ def test_the_probe_starts_again_bounded_or_contracted_on_the_budget_left(sky, mo
         assert trainer.step_count == 12
 
 
-def test_a_probe_that_finds_an_object_keeps_the_box_given(sky, monkeypatch):
+def test_a_probe_that_finds_an_object_keeps_the_box_and_environment_given(sky, monkeypatch):
     monkeypatch.setattr(probe, "PROBE_STEPS", 4)
     monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
     monkeypatch.setattr(probe, "PROBE_SCORE", -1.0)
     monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.5)
-    trainer, seen = probe.probed_trainer(sky, small(steps=8, contraction_fit="probe", aabb_scale=8), "cpu")
+    config = small(steps=8, contraction_fit="probe", aabb_scale=8)
+    config = dataclasses.replace(config, field=dataclasses.replace(config.field, environment=False))
+    trainer, seen = probe.probed_trainer(sky, config, "cpu")
     assert seen.fit == "bounded" and trainer.config.aabb_scale == 8 and trainer.grid.levels == 4
+    assert trainer.config.field.environment is False and trainer.field.environment is None  # as given
 
 
 @pytest.mark.parametrize("score, steps, chosen", [(-1.0, 10, "bounded"), (3.0, 20, "cameras")])

@@ -13,7 +13,8 @@
   camera sees); the field learns the colour at infinity (``FieldConfig.environment``). Where
   this rule contracts, ``contraction_fit`` "auto" (the default, where a run can train a probe)
   and "probe" tell by a short training an object before a distant backdrop, which then trains
-  bounded in a box of 32, from a scene with content around its cameras, which trains contracted
+  bounded in a box of 32 with a learned colour at infinity, from a scene with content around its
+  cameras, which trains contracted
   (:mod:`ngp_warp.training.contraction_probe`).
 * Field box: a COLMAP capture of an object on a plain backdrop that trains bounded gets the box
   its cameras see (:func:`choose_aabb_scale`), not the one holding its cameras.
