@@ -73,9 +73,8 @@ def main() -> None:
     for k in held:
         d, alpha = rays[k], alphas[k]
         truth = environment_colours(d)
-        nearest = torch.cat([(chunk @ seen.T).max(1).values for chunk in d.split(2048)])
-        index = torch.cat([(chunk @ seen.T).argmax(1) for chunk in d.split(2048)])
-        angle = torch.rad2deg(torch.acos(nearest.clamp(-1.0, 1.0)))
+        cosine, index = (torch.cat(parts) for parts in zip(*((chunk @ seen.T).max(1) for chunk in d.split(2048))))
+        angle = torch.rad2deg(torch.acos(cosine.clamp(-1.0, 1.0)))
         backdrop = alpha[:, 0] < 1.0
         fitted = torch.sigmoid(spherical_harmonics_deg4(d) @ weights)
         near = environment_colours(seen[index])

@@ -5,8 +5,9 @@ environment: nothing triangulates beyond the subject) or a scene with content al
 cameras (ground, walls). The first trains best bounded in instant-ngp's box of 32 with its
 cascades (lego over an environment at 60 s on an H100: 33.4 dB against 30.0 contracted with the
 box holding the cameras) and a learned colour at infinity for its backdrop (the demo object over
-the environment: 28.0 ± 0.2 against 26.6 ± 3.8 without it, three runs each), the second contracted (the unbounded scene: 31.5 against 29.2), and
-no rule on the cameras and images alone told the two apart (benchmarks/NOTES.md). Training
+the environment: 28.0 ± 0.2 against 26.6 ± 3.8 without it, three runs each), the second
+contracted (the unbounded scene: 31.5 against 29.2), and no rule on the cameras and images alone
+told the two apart (benchmarks/NOTES.md). Training
 does: contracted with the box the median camera sees at the centre (``"seen"``,
 :func:`~ngp_warp.training.scene_defaults.contraction_box`), an object keeps its density inside
 that box (its backdrop is the field's learned environment), while a scene around its cameras
@@ -20,7 +21,8 @@ the others' stay.
 So the probe trains with ``"seen"`` for up to :data:`PROBE_STEPS` steps (at most 15 % of the
 budget), reading the sum at each of :data:`PROBE_READS` and at its end, and starts again: bounded
 in the box of :data:`OBJECT_AABB_SCALE` (or the ``aabb_scale`` given) at the first reading that
-reaches :data:`PROBE_SCORE` (with ``field.environment`` on unless set), else contracted with the box holding the cameras (``"cameras"``).
+reaches :data:`PROBE_SCORE` (with ``field.environment`` on unless set), else contracted with the
+box holding the cameras (``"cameras"``).
 The new model takes the whole of a step budget (the probe's steps are not counted, so a resumed
 run's step count stays the model's own), while a time budget counts the probe's seconds too (the
 schedule runs over the whole time). A budget whose 15 % is under :data:`PROBE_MIN_STEPS`

@@ -1,7 +1,8 @@
 """The optimizer state of a field: both Adams, the weight average and the deferred update.
 
-The MLPs step with :class:`ngp_warp.ops.optim.Adam` (torch's fused Adam); the hash table with :class:`ngp_warp.ops.optim.LazyAdam` (entries
-without gradient stand still), or with the MLPs' Adam when ``lazy_table=False``. The update of
+The MLPs step with :class:`ngp_warp.ops.optim.Adam` (torch's fused Adam); the hash table with
+:class:`ngp_warp.ops.optim.LazyAdam` (entries without gradient stand still), or with the MLPs'
+Adam when ``lazy_table=False``. The update of
 a step is deferred: :meth:`FieldOptimizer.defer` records its learning rate and average decay,
 :meth:`FieldOptimizer.flush` queues it, which the trainer does inside the next step's march
 (see :meth:`ngp_warp.training.trainer.Trainer.step`) or before anything reads the weights.
@@ -34,7 +35,8 @@ class FieldOptimizer:
             average in its update pass; the MLPs' averages are lerped after each update.
 
     Attributes:
-        mlp_adam: the :class:`~ngp_warp.ops.optim.Adam` of the MLPs (and of the table unless ``lazy_table``).
+        mlp_adam: the :class:`~ngp_warp.ops.optim.Adam` of the MLPs (and of the table unless
+            ``lazy_table``).
         table_adam: the table's ``LazyAdam``, or None.
         averaged: one float32 tensor per field parameter (shapes and order of
             ``field.parameters()``), or None without averaging; read it through
