@@ -272,7 +272,35 @@ def test_a_lost_store_is_one_line(monkeypatch):
     monkeypatch.setattr(dist.distributed_c10d, "_get_default_store", lambda: GoneStore())
     with pytest.raises(FitManyError, match=r"^lost the rendezvous store \(Broken pipe: its node died\?\); the scenes "
                                            r"finished are kept, and the same command run again fits the rest$"):
-        next(fit_many.claimed_scenes(3))
+        next(fit_many.claimed_scenes([0, 1, 2]))
+
+
+def test_scenes_are_claimed_largest_first(tmp_path, monkeypatch):
+    import torch.distributed as dist
+
+    scenes = []
+    for name, size in [("small", 10), ("large", 300), ("medium", 50), ("twin", 50)]:
+        (tmp_path / name / "images").mkdir(parents=True)
+        (tmp_path / name / "images" / "a.png").write_bytes(b"x" * size)
+        scenes.append(tmp_path / name)
+    order = fit_many.largest_first(scenes)
+    assert [scenes[i].name for i in order] == ["large", "medium", "twin", "small"]
+    assert list(fit_many.claimed_scenes(order)) == order  # outside a process group: all, in order
+
+    class CounterStore:  # two ranks sharing the queue's counter
+        def __init__(self):
+            self.count = 0
+
+        def add(self, key, amount):
+            self.count += amount
+            return self.count
+
+    store = CounterStore()
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist.distributed_c10d, "_get_default_store", lambda: store)
+    rank0, rank1 = fit_many.claimed_scenes(order), fit_many.claimed_scenes(order)
+    claims = [next(rank0), next(rank1), next(rank1), next(rank0)]
+    assert claims == order and list(rank0) == [] and list(rank1) == []
 
 
 def test_incomplete_metrics_are_not_finished(tmp_path):

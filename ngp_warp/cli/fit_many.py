@@ -3,7 +3,9 @@
 MANIFEST is a text file naming scene folders, one a line (relative to the file; blank lines and
 ``#`` comments are skipped; a line may be a glob), or a glob itself. Under torchrun (or with
 ``--gpus N``) the scenes are handed out as ranks free up: each rank claims the next scene from a
-counter in the process group's store, so a slow scene does not leave another rank idle. Each rank
+counter in the process group's store, so a slow scene does not leave another rank idle. The
+largest scenes (bytes on disk) are handed out first, so that the last to finish are small ones
+and the ranks end close together. Each rank
 trains its scenes one at a time, on its own GPU or as a CPU process, through the ``train``
 command's path, into ``DIR/<scene folder name>/`` (checkpoint, metrics.json, renders, ...). A
 scene whose metrics.json is complete is skipped; one with a checkpoint resumes with what is left
@@ -140,18 +142,31 @@ def summary_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def claimed_scenes(n_scenes: int):
-    """The indices of the scenes this rank fits, each claimed when the rank is free: the next
-    value of a counter in the process group's store (every scene once over all ranks), or all
-    of them in order outside a process group."""
+def scene_bytes(scene: Path) -> int:
+    """The bytes of the files under ``scene``: what a scene costs to load, train on and evaluate,
+    as far as one can tell before loading it."""
+    return sum(f.stat().st_size for f in scene.rglob("*") if f.is_file())
+
+
+def largest_first(scenes: list[Path]) -> list[int]:
+    """The scenes' indices, largest (:func:`scene_bytes`) first, ties in manifest order: the order
+    in which the ranks claim them."""
+    sizes = [scene_bytes(s) for s in scenes]
+    return sorted(range(len(scenes)), key=lambda i: -sizes[i])
+
+
+def claimed_scenes(order: list[int]):
+    """The indices of the scenes this rank fits, in ``order``, each claimed when the rank is
+    free: the next value of a counter in the process group's store picks the next of ``order``
+    (every scene once over all ranks), or all of them outside a process group."""
     import torch.distributed as dist
 
     if not (dist.is_available() and dist.is_initialized()):
-        yield from range(n_scenes)
+        yield from order
         return
     store = dist.distributed_c10d._get_default_store()  # torchrun's rendezvous store, shared by the ranks
-    while (index := _stored(store.add, QUEUE_KEY, 1) - 1) < n_scenes:
-        yield index
+    while (claim := _stored(store.add, QUEUE_KEY, 1) - 1) < len(order):
+        yield order[claim]
 
 
 def _stored(call, *args):
@@ -246,7 +261,7 @@ def cmd_fit_many(args) -> None:
     start = time.perf_counter()
     with Heartbeat():
         rows = [{**fit_scene(scenes[i], out / scenes[i].name, args), "rank": rank}
-                for i in claimed_scenes(len(scenes))]
+                for i in claimed_scenes(largest_first(scenes))]
     busy = time.perf_counter() - start
     rows, busy_per_rank, lost = _all_ranks(rows, busy)
     rows = sorted(rows, key=lambda r: [s.name for s in scenes].index(r["scene"]))
