@@ -113,6 +113,27 @@ def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam)
     assert loaded.step_count == 45
 
 
+def test_checkpoint_written_behind_holds_the_weights_of_the_call(tiny_scene, tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cpu")
+    trainer.train(show_progress=False)
+    save_checkpoint(trainer, tmp_path / "now.pt", tiny_scene, 1)
+    claims = []
+    with ThreadPoolExecutor(1) as writer:
+        written = save_checkpoint(trainer, tmp_path / "behind.pt", tiny_scene, 1,
+                                  before_write=lambda: claims.append(1), writer=writer)
+        with torch.no_grad():  # what evaluation or more training would do to the live weights meanwhile
+            for t in trainer.field.state_dict().values():
+                if t.is_floating_point():
+                    t.add_(1.0)
+        written.result()
+    assert claims == [1]
+    now, behind = read_checkpoint(tmp_path / "now.pt"), read_checkpoint(tmp_path / "behind.pt")
+    assert_same_state({k: v for k, v in now.items() if k != "rng"}, {k: v for k, v in behind.items() if k != "rng"})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["behind.pt", "now.pt"]  # no temporary left behind
+
+
 def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp_path):
     trainer = Trainer(load_scene(tiny_scene), tiny_config(10), device="cpu")
     trainer.train(show_progress=False)

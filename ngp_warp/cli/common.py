@@ -9,6 +9,7 @@ import math
 import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 CHECKPOINT = "checkpoint.pt"
@@ -239,8 +240,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
               file=sys.stderr)
 
-    def save() -> None:  # an overwritten run's outputs go just before the first (good) write
-        save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim)
+    def save(writer=None):  # an overwritten run's outputs go just before the first (good) write
+        return save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim, writer=writer)
 
     if resume:
         _check_video(args, scene)
@@ -250,12 +251,14 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     clock.shift(probe_seconds, "start_up", "training")  # the probe trained during the start-up
     _train(trainer, save, folder, args, scene_path)
     clock.mark("training")
-    save()
-    if trainer.cameras is not None:
-        refined = write_refined_transforms(trainer, scene_path, downscale, out)
-        print(f"camera refinement: {trainer.cameras.summary()}; refined poses: {refined}", file=sys.stderr)
-    clock.mark("checkpoint")
-    metrics = evaluate(trainer, out, show_progress=not args.quiet)
+    with ThreadPoolExecutor(1, thread_name_prefix="checkpoint") as writer:  # written while evaluating
+        written = save(writer)
+        if trainer.cameras is not None:
+            refined = write_refined_transforms(trainer, scene_path, downscale, out)
+            print(f"camera refinement: {trainer.cameras.summary()}; refined poses: {refined}", file=sys.stderr)
+        clock.mark("checkpoint")
+        metrics = evaluate(trainer, out, show_progress=not args.quiet)
+        written.result()
     clock.mark("evaluation")
     if not args.no_video:
         train = scene.train

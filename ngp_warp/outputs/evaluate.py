@@ -41,9 +41,10 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
     """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8."""
     d = depth / opacity.clamp_min(1e-6)
     mask = opacity > 0.5
-    if mask.any():
-        lo, hi = d[mask].min(), d[mask].max()
-        d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
+    # the range of the opaque pixels without reading it on the host (no pixel opaque: all black)
+    lo = torch.where(mask, d, torch.inf).amin()
+    hi = torch.where(mask, d, -torch.inf).amax()
+    d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
 

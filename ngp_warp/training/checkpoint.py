@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
@@ -55,10 +56,13 @@ def _check_finite(state: dict, path: Path) -> None:
 
 
 def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: int,
-                    before_write: Callable[[], None] | None = None) -> None:
+                    before_write: Callable[[], None] | None = None,
+                    writer: ThreadPoolExecutor | None = None) -> Future | None:
     """Write ``path`` atomically (temporary file, then rename); :class:`NonFiniteWeights`,
     writing nothing, when the field's weights hold NaN or infinity. ``before_write`` is called
-    once the weights are known good, before anything is written."""
+    once the weights are known good, before anything is written. With ``writer`` the record is
+    copied to the host here and written on that thread, while the caller goes on: the returned
+    future's ``result()`` waits for the file (and raises what failed)."""
     state = {
         "format": FORMAT,
         "scene": {"path": str(Path(scene_path).resolve()), "downscale": int(downscale),
@@ -70,8 +74,27 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
     _check_finite(state, Path(path))
     if before_write is not None:
         before_write()
+    if writer is None:
+        _write(state, Path(path))
+        return None
+    return writer.submit(_write, _host_copy(state), Path(path))
+
+
+def _write(state: dict, path: Path) -> None:
     with atomic_file(path) as tmp:
         torch.save(state, tmp)
+
+
+def _host_copy(record):
+    """``record`` with every tensor copied to the CPU (new storage also for CPU tensors), so that
+    training or evaluation may change the originals while it is written."""
+    if isinstance(record, torch.Tensor):
+        return record.detach().to("cpu", copy=True)
+    if isinstance(record, dict):
+        return {k: _host_copy(v) for k, v in record.items()}
+    if isinstance(record, (list, tuple)):
+        return type(record)(_host_copy(v) for v in record)
+    return record
 
 
 def read_checkpoint(path: Path) -> dict:
