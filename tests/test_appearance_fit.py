@@ -66,6 +66,50 @@ def test_fitted_code_reproduces_a_known_code_and_leaves_the_field_alone(trained)
     assert all(p.grad is None for p in field.parameters())
 
 
+def fit_by_rendering_each_iteration(trainer, c2w, intrinsics, width, height, image, background, iterations,
+                                    rays_per_iteration, lr=1e-2, seed=0):
+    """The fit as its definition reads: every iteration renders its rays anew with the code."""
+    from ngp_warp.data.cameras import generate_rays
+    from ngp_warp.ops.optim import Adam
+    from ngp_warp.training.appearance_fit import _left_half_pixels
+
+    field = trainer.field
+    px_all, py_all = _left_half_pixels(width, height, iterations, rays_per_iteration, seed)
+    with trainer.weights.averaged_in_field():
+        code = field.appearance.weight.detach().mean(0).clone().requires_grad_(True)
+        adam = Adam([code], lr=lr)
+
+        def field_fn(positions, directions):
+            sigma, h = field.geometry(positions)
+            return sigma, field.colour(h, directions, code, differentiable=True)
+
+        for px, py in zip(px_all, py_all):
+            n = px.shape[0]
+            rays_o, rays_d = generate_rays(c2w[None].expand(n, 3, 4), intrinsics[None].expand(n, 4), None, px, py)
+            out = trainer.model.render(rays_o, rays_d, field_fn, background=background, sigma_fn=field.density)
+            if out["n_samples"] == 0:
+                continue
+            (code.grad,) = torch.autograd.grad((out["rgb"] - image[py, px]).square().mean(), [code])
+            adam.step()
+    return code.detach()
+
+
+@pytest.mark.parametrize("group_rays", [1 << 16, 48])  # one group, and a group of one iteration of 40 rays
+def test_fit_from_kept_samples_equals_rendering_every_iteration(trained, monkeypatch, group_rays):
+    import ngp_warp.training.appearance_fit as appearance_fit
+
+    monkeypatch.setattr(appearance_fit, "FIT_GROUP_RAYS", group_rays)
+    mean = trained.field.appearance.weight.detach().mean(0)
+    known = mean + 2.0 * torch.randn(mean.shape, generator=torch.Generator().manual_seed(3))
+    target = render(trained, known)
+    fitted = fit_appearance_code(trained, **view(trained), image=target, background=0.5, iterations=25,
+                                 rays_per_iteration=40, seed=5)
+    want = fit_by_rendering_each_iteration(trained, **view(trained), image=target, background=0.5, iterations=25,
+                                           rays_per_iteration=40, seed=5)
+    assert (fitted - mean).norm() > 0.1  # it moved
+    torch.testing.assert_close(fitted, want, rtol=0, atol=1e-4)
+
+
 def test_fit_sees_only_the_left_half_and_is_deterministic(trained):
     target = render(trained, None) * 0.7  # darker than any code renders with the mean
     code = fit_appearance_code(trained, **view(trained), image=target, background=0.0, **FIT)

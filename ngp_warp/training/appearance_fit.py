@@ -14,6 +14,8 @@ evaluation does, :func:`fit_appearance_code` fits that view's code on the LEFT h
 
 with :math:`C(r; e)` the training render of ray :math:`r` with code :math:`e` for every sample,
 minimised by Adam from the mean training code on a fresh random batch :math:`B` per iteration.
+The samples' weights and geometry do not depend on the code, so they are computed once for many
+iterations' rays, and each iteration evaluates only the colour head (:func:`_fit_code`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from ngp_warp.training.trainer import Trainer
 FIT_ITERATIONS = 100
 FIT_LR = 1e-2
 FIT_RAYS_PER_ITERATION = {"cuda": 4096, "cpu": 256}  # by device type
+FIT_GROUP_RAYS = 1 << 16  # rays whose samples are marched and kept at once
 POSE_LR = 1e-3            # a view's pose correction: Adam's first learning rate ...
 POSE_LR_FINAL = 1e-5      # ... decayed exponentially to this over the fit
 
@@ -83,21 +86,10 @@ def _left_half_pixels(width: int, height: int, iterations: int, rays: int, seed:
     return px, py
 
 
-def _field_with_code(field: NGPField, code: torch.Tensor):
-    """field_fn of :func:`ngp_warp.render_rays` that colours every sample with ``code`` ([A]
-    float32, requires grad): σ and the geometry features without autograd
-    (:meth:`NGPField.geometry`: the field is frozen), the colour head (the one of
-    :meth:`NGPField.forward`, differentiable) with it, so that gradients reach ``code`` only."""
-    def field_fn(positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        sigma, h = field.geometry(positions)
-        return sigma, field.colour(h, directions, code, differentiable=True)
-
-    return field_fn
-
-
 def _field_with_code_and_positions(field: NGPField, code: torch.Tensor):
-    """As :func:`_field_with_code`, with σ and the geometry features differentiable in the
-    positions (:meth:`NGPField.forward`'s path), so that gradients reach a pose correction."""
+    """field_fn of :func:`ngp_warp.render_rays` that colours every sample with ``code`` ([A]
+    float32, requires grad), with σ and the geometry features differentiable in the positions
+    (:meth:`NGPField.forward`'s path), so that gradients reach a pose correction."""
     def field_fn(positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h = field._geometry(positions)
         return field._sigma(h, positions), field.colour(h, directions, code, differentiable=True)
@@ -185,30 +177,75 @@ def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, dist
     c2w_n, intr_n = c2w.to(dev, torch.float32)[None], intrinsics.to(dev, torch.float32)[None]
     dist_n = None if distortion is None else distortion.to(dev, torch.float32)[None]
     px_all, py_all = (t.to(dev) for t in _left_half_pixels(width, height, iterations, rays_per_iteration, seed))
+
+    def rays(px: torch.Tensor, py: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        n = px.shape[0]
+        return generate_rays(c2w_n.expand(n, 3, 4), intr_n.expand(n, 4),
+                             None if dist_n is None else dist_n.expand(n, 6), px, py, fisheye=fisheye)
+
     with trainer.weights.averaged_in_field():
         code = field.appearance.weight.detach().mean(0).clone().requires_grad_(True)
         adam = Adam([code], lr=lr)
-        field_fn = _field_with_code(field, code) if pose is None else _field_with_code_and_positions(field, code)
-        pose_adam = None if pose is None else Adam([pose.omega, pose.tau], lr=POSE_LR, eps=1e-15)
+        if pose is None:
+            _fit_code(trainer, code, adam, rays, px_all, py_all, target_image, background)
+            return code.detach()
+        field_fn = _field_with_code_and_positions(field, code)
+        pose_adam = Adam([pose.omega, pose.tau], lr=POSE_LR, eps=1e-15)
         pose_index = torch.zeros(px_all.shape[1], dtype=torch.long, device=dev)  # every ray: the one pose
         for it, (px, py) in enumerate(zip(px_all, py_all)):
-            n = px.shape[0]
-            rays_o, rays_d = generate_rays(c2w_n.expand(n, 3, 4), intr_n.expand(n, 4),
-                                           None if dist_n is None else dist_n.expand(n, 6), px, py, fisheye=fisheye)
-            if pose is not None:
-                rays_o, rays_d = pose.rays(pose_index, rays_o, rays_d)
+            rays_o, rays_d = pose.rays(pose_index, *rays(px, py))
             with trainer.model.precision():
                 bg = field.background(rays_d).detach() if background is None else background
-                out = trainer.model.render(rays_o, rays_d, field_fn, background=bg,
-                                           sigma_fn=field.density)
+                out = trainer.model.render(rays_o, rays_d, field_fn, background=bg, sigma_fn=field.density)
             if out["n_samples"] == 0:  # nothing along these rays: the code changes nothing
                 continue
             loss = (out["rgb"] - target_image[py, px]).square().mean()
-            if pose is None:
-                (code.grad,) = torch.autograd.grad(loss, [code])
-            else:
-                code.grad, pose.omega.grad, pose.tau.grad = torch.autograd.grad(loss, [code, pose.omega, pose.tau])
-                pose_adam.param_groups[0]["lr"] = POSE_LR * (POSE_LR_FINAL / POSE_LR) ** (it / max(iterations - 1, 1))
-                pose_adam.step()
+            code.grad, pose.omega.grad, pose.tau.grad = torch.autograd.grad(loss, [code, pose.omega, pose.tau])
+            pose_adam.param_groups[0]["lr"] = POSE_LR * (POSE_LR_FINAL / POSE_LR) ** (it / max(iterations - 1, 1))
+            pose_adam.step()
             adam.step()
     return code.detach()
+
+
+def _fit_code(trainer: Trainer, code: torch.Tensor, adam: Adam, rays, px_all: torch.Tensor, py_all: torch.Tensor,
+              target_image: torch.Tensor, background: float | None) -> None:
+    """Adam on ``code`` alone, one iteration per row of ``px_all``, ``py_all`` [I, R]. A ray's
+    sample weights do not depend on the code (σ does not), so the samples of
+    :data:`FIT_GROUP_RAYS` rays at a time are marched and their geometry features computed once,
+    and each iteration composites its rays' colours from them:
+
+    .. math::
+
+        C(r; e) = \\sum_i w_i\\, c(h_i, d_i, e) + (1 - O_r)\\, b_r
+
+    the loss and gradient of rendering every iteration anew (up to summation order)."""
+    field = trainer.field
+    iterations, n = px_all.shape
+    per_group = max(1, FIT_GROUP_RAYS // n)
+    for first in range(0, iterations, per_group):
+        px, py = px_all[first:first + per_group].reshape(-1), py_all[first:first + per_group].reshape(-1)
+        rays_o, rays_d = rays(px, py)
+        cache = {}
+
+        def recording_fn(positions: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            sigma, h = field.geometry(positions)
+            cache["h"], cache["directions"] = h, directions
+            return sigma, torch.zeros_like(positions)  # the colours come below, with the code
+
+        with torch.no_grad(), trainer.model.precision():
+            bg = field.background(rays_d) if background is None else torch.full_like(rays_d, background)
+            out = trainer.model.render(rays_o, rays_d, recording_fn, sigma_fn=field.density, return_samples=True)
+        target = target_image[py, px]
+        behind = (1.0 - out["opacity"])[:, None] * bg
+        offsets = out["ray_offsets"].tolist()  # one host read per group
+        for k in range(px.shape[0] // n):
+            start, end = offsets[k * n], offsets[(k + 1) * n]
+            if end == start:  # nothing along these rays: the code changes nothing
+                continue
+            with trainer.model.precision():
+                colour = field.colour(cache["h"][start:end], cache["directions"][start:end], code, differentiable=True)
+            rgb = behind[k * n:(k + 1) * n].index_add(0, out["ray_indices"][start:end] - k * n,
+                                                      out["weights"][start:end, None] * colour.float())
+            loss = (rgb - target[k * n:(k + 1) * n]).square().mean()
+            (code.grad,) = torch.autograd.grad(loss, [code])
+            adam.step()
