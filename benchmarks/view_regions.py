@@ -26,8 +26,10 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
+import torch
 
 from ngp_warp.data.loading import downscale_image
+from ngp_warp.outputs.evaluate import composite_on
 
 BLOCK = 8  # pixels per side of an error map's block
 
@@ -42,10 +44,7 @@ def photo_as_scored(path: Path, height: int, width: int) -> np.ndarray:
     if factor < 1 or image.shape[0] // factor != height or image.shape[1] // factor != width:
         raise SystemExit(f"{path}: {image.shape[1]}x{image.shape[0]} is not an integer multiple of the "
                          f"render's {width}x{height}")
-    image = downscale_image(image, factor).astype(np.float64) / 255.0
-    if image.shape[2] == 4:
-        image = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])
-    return image[..., :3]
+    return composite_on(torch.from_numpy(downscale_image(image, factor)), torch.ones(3)).double().numpy()
 
 
 def region_psnr(error: np.ndarray, rows: int, cols: int) -> list[float]:
@@ -95,7 +94,7 @@ def main() -> None:
     for photo in photos:
         maps = []
         for label, folder in zip(labels, folders):
-            render = iio.imread(folder / f"{photo.stem}.png")[..., :3].astype(np.float64) / 255.0
+            render = iio.imread(folder / f"{photo.stem}.png")[..., :3].astype(np.float32) / np.float32(255.0)
             error = ((render - photo_as_scored(photo, *render.shape[:2])) ** 2).mean(-1)
             scores = region_psnr(error, args.rows, args.cols)
             table[label].append(scores)
