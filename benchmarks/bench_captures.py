@@ -3,7 +3,7 @@ the command a user runs (``ngp-warp train SCENE --seconds S``, defaults), one ta
 
     python benchmarks/bench_captures.py --lego ../shared/data/lego_half --fox ../shared/data/fox \
         --seconds 60 [--scenes demo-colmap,unbounded-colmap] [--runs 3] [--compare contraction=none] \
-        [--downscale 4] [--device cpu]
+        [--downscale 4] [--device cpu] [--seed 0]
 
 Scenes (every 8th frame held out, sorted by name; ``capture_scenes.py`` writes the forms):
 
@@ -190,7 +190,8 @@ def main() -> None:
     parser.add_argument("--fox", type=Path, help="instant-ngp's fox folder")
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--downscale", type=int, default=1, help="train and score every scene at 1/N resolution")
-    parser.add_argument("--runs", type=int, default=1, help="runs per scene and setting (seeds 0, 1, ...)")
+    parser.add_argument("--runs", type=int, default=1, help="runs per scene and setting (seeds SEED, SEED + 1, ...)")
+    parser.add_argument("--seed", type=int, default=0, help="the first run's seed")
     parser.add_argument("--compare", action="append", default=[], help="KEY=VALUE[,KEY=VALUE]: also train each scene with these")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--out", type=Path, default=Path("bench_captures"))
@@ -206,8 +207,8 @@ def main() -> None:
         for setting in ["defaults", *args.compare]:
             settings = [] if setting == "defaults" else setting.split(",")
             runs = [train(folder, args.out / "runs" / f"{name}-{setting}-{seed}", args, seed, settings)
-                    for seed in range(args.runs)]
-            pictures.append(picture(args.out / "runs" / f"{name}-{setting}-0", runs[0]))
+                    for seed in range(args.seed, args.seed + args.runs)]
+            pictures.append(picture(args.out / "runs" / f"{name}-{setting}-{args.seed}", runs[0]))
             rows.append((name, setting, summary(runs)))
             record.append({"scene": name, "setting": setting, "runs": [
                 {k: v for k, v in r.items() if k != "per_image"} for r in runs]})
