@@ -12,6 +12,10 @@ the one above it; the device is synchronised at the end of each pass, not per vi
 - ``evaluate()``: the whole evaluation as ``ngp-warp eval`` runs it (files written to a temporary
   folder), over every test view, scaled to ``--views``.
 
+With appearance codes (captures) it also times the evaluation's code path per view: the code
+fit on the left half, the render with the fitted code that also colours the same samples with
+the nearest and the mean code (``other_codes``), and beside it the three renders alone.
+
 On CUDA it then prints the device-busy time per view of 10 renders (torch.profiler), so a
 host-bound render shows as ms per view well above it.
 """
@@ -29,8 +33,9 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from ngp_warp.outputs.evaluate import depth_to_uint8, evaluate, iter_test_renders, to_uint8
+from ngp_warp.outputs.evaluate import composite_on, depth_to_uint8, evaluate, iter_test_renders, to_uint8
 from ngp_warp.outputs.metrics import psnr, ssim
+from ngp_warp.training.appearance_fit import fit_appearance_code, nearest_training_code
 from ngp_warp.training.checkpoint import load_trainer
 
 
@@ -43,6 +48,34 @@ def timed_pass(trainer, views: int, work) -> float:
         work(out, gt)
     sync()
     return (time.perf_counter() - start) / views * 1e3
+
+
+def code_parts(trainer, views: int) -> list[tuple[str, float]]:
+    """ms per view of each part of the evaluation's code path over ``views`` test views (the
+    device synchronised around each part)."""
+    sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
+    split, background = trainer.scene.test, trainer.view_background
+    white = torch.ones(3, device=trainer.device)
+    parts = {"code fit": 0.0, "one render, three codes": 0.0, "three renders": 0.0}
+
+    def timed(part: str, work):
+        sync()
+        start = time.perf_counter()
+        result = work()
+        sync()
+        parts[part] += (time.perf_counter() - start) / views * 1e3
+        return result
+
+    for i in range(views):
+        camera = split.camera(i)
+        gt = composite_on(split.images[i].to(trainer.device), white)
+        code = timed("code fit", lambda: fit_appearance_code(trainer, **camera, image=gt, background=background))
+        others = (nearest_training_code(trainer, camera["c2w"]), None)
+        timed("one render, three codes", lambda: trainer.render_image(**camera, background=background,
+                                                                      appearance_code=code, other_codes=others))
+        timed("three renders", lambda: [trainer.render_image(**camera, background=background, appearance_code=c)
+                                        for c in (code, *others)])
+    return list(parts.items())
 
 
 def main() -> None:
@@ -67,6 +100,8 @@ def main() -> None:
         evaluate(trainer, Path(folder), show_progress=False)
         whole = (time.perf_counter() - start) / len(trainer.scene.test.names) * 1e3
     rows.append(("evaluate()", whole))
+    if trainer.field.appearance is not None:
+        rows += code_parts(trainer, views)
     split = trainer.scene.test
     print(f"{views} test views at {split.width}×{split.height}, device {trainer.device}")
     print("| pass | ms per view | s for all test views |\n| --- | ---: | ---: |")

@@ -137,7 +137,8 @@ def test_a_views_fitted_pose_turns_back_towards_the_true_one(tiny_scene):  # noq
 
 
 def test_evaluation_of_a_refined_run_fits_each_views_pose(tiny_scene, tmp_path):  # noqa: F811
-    from ngp_warp.outputs.evaluate import evaluate
+    from ngp_warp.outputs.evaluate import evaluate, iter_test_renders
+    from ngp_warp.outputs.metrics import psnr
 
     cfg = tiny_config(20)
     cfg.camera_refinement, cfg.field.appearance_dim = True, 4
@@ -146,3 +147,8 @@ def test_evaluation_of_a_refined_run_fits_each_views_pose(tiny_scene, tmp_path):
     metrics = evaluate(trainer, tmp_path, show_progress=False)
     assert metrics["appearance"].startswith("code and pose fitted on the left half")
     assert len(metrics["per_image"]) == 3 and all(math.isfinite(m["psnr"]) for m in metrics["per_image"])
+    # the whole-image scores are the views at their recorded poses, not at the fitted ones
+    for record, (_, near, gt), (_, mean, _) in zip(metrics["per_image"], iter_test_renders(trainer, nearest_code=True),
+                                                   iter_test_renders(trainer), strict=True):
+        assert record["psnr_nearest_code"] == pytest.approx(psnr(near["rgb"], gt), abs=1e-6)
+        assert record["psnr_mean_code"] == pytest.approx(psnr(mean["rgb"], gt), abs=1e-6)

@@ -245,9 +245,31 @@ def test_appearance_codes_colour_the_view(trainer, coded_model):
     torch.testing.assert_close(other["opacity"], mean["opacity"])  # the code changes colour only
 
 
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_other_codes_colour_the_same_samples_as_their_own_renders(trainer, coded_model, supersample):
+    c2w, intr = camera(trainer)
+    codes = [torch.tensor([10.0, -10, 5, 0]), None, coded_model.field.appearance.weight[3]]
+    shared = render_view(coded_model, c2w, intr, W, H, background=0.5, supersample=supersample,
+                         appearance_code=codes[0], other_codes=codes[1:])
+    assert shared["other_rgb"].shape == (2, H, W, 3)
+    images = [shared["rgb"], *shared["other_rgb"]]
+    for code, image in zip(codes, images, strict=True):
+        alone = render_view(coded_model, c2w, intr, W, H, background=0.5, supersample=supersample,
+                            appearance_code=code)
+        assert "other_rgb" not in alone
+        torch.testing.assert_close(image, alone["rgb"], rtol=0, atol=1e-6)
+        torch.testing.assert_close(shared["opacity"], alone["opacity"], rtol=0, atol=1e-6)
+        torch.testing.assert_close(shared["depth"], alone["depth"], rtol=0, atol=1e-6)
+    assert min((a - b).abs().max() for a, b in [images[:2], images[1:]]) > 1e-3  # three colourings
+
+
 def test_appearance_code_mistakes_are_refused(trainer, coded_model):
     c2w, intr = camera(trainer)
     with pytest.raises(ValueError, match=r"\[4\] float"):
         render_view(coded_model, c2w, intr, W, H, appearance_code=torch.zeros(5))
     with pytest.raises(ValueError, match="no appearance codes"):  # through Trainer.render_image
         trainer.render_image(c2w, intr, W, H, appearance_code=torch.zeros(4))
+    with pytest.raises(ValueError, match="other_codes given, but this field has no appearance codes"):
+        trainer.render_image(c2w, intr, W, H, other_codes=(None,))
+    with pytest.raises(ValueError, match=r"\[4\] float"):
+        render_view(coded_model, c2w, intr, W, H, other_codes=(torch.zeros(3),))

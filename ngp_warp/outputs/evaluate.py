@@ -3,7 +3,6 @@ appearance codes on the right half of each view, its code fitted on the left), r
 
 from __future__ import annotations
 
-import itertools
 import json
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -75,7 +74,7 @@ class BackgroundWrites:
 
 
 def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1, fit_appearance: bool = False,
-                      nearest_code: bool = False):
+                      nearest_code: bool = False, whole_codes: bool = False):
     """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th view of
     ``split`` (default: the test split), rendered (``spp`` as in ``Trainer.render_image``) and
     composited on white; where the field learns the background (``Trainer.black_background``:
@@ -88,7 +87,10 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     ``appearance_code`` [A]): score such a view on the right half only
     (:func:`~ngp_warp.training.appearance_fit.right_half`). When the run refined its training cameras
     (``camera_refinement``), whose corrections move the scene's frame a little, the fit takes the
-    view's pose as well (:func:`~ngp_warp.training.appearance_fit.fit_appearance_and_pose`)."""
+    view's pose as well (:func:`~ngp_warp.training.appearance_fit.fit_appearance_and_pose`).
+    With ``fit_appearance`` and ``whole_codes``, the render dict also holds ``other_rgb`` [2, H,
+    W, 3]: the view (at its recorded pose) with the nearest training camera's code and with the
+    mean code, coloured from the same samples as the fitted code's where the pose is the same."""
     split = trainer.scene.test if split is None else split
     white = torch.ones(3, device=trainer.device)
     background = trainer.view_background
@@ -99,12 +101,19 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
         code = None
         if nearest_code and trainer.field.appearance is not None and not fit:
             code = nearest_training_code(trainer, camera["c2w"])
+        posed = camera
         if fit and trainer.cameras is not None:
             code, c2w = fit_appearance_and_pose(trainer, **camera, image=gt, background=background)
-            camera = {**camera, "c2w": c2w}
+            posed = {**camera, "c2w": c2w}
         elif fit:
             code = fit_appearance_code(trainer, **camera, image=gt, background=background)
-        out = trainer.render_image(**camera, background=background, spp=spp, appearance_code=code)
+        others = (nearest_training_code(trainer, camera["c2w"]), None) if fit and whole_codes else ()
+        shared = others if posed is camera else ()  # one set of samples serves every code at one pose
+        out = trainer.render_image(**posed, background=background, spp=spp, appearance_code=code, other_codes=shared)
+        if others and not shared:
+            whole = trainer.render_image(**camera, background=background, spp=spp, appearance_code=others[0],
+                                         other_codes=others[1:])
+            out["other_rgb"] = torch.cat([whole["rgb"][None], whole["other_rgb"]])
         if fit:
             out["appearance_code"] = code
         yield split.names[i], out, gt
@@ -145,19 +154,18 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     metrics.json's ``appearance`` says so. renders/ holds the fitted code's whole images."""
     out_dir = Path(out_dir)
     fitted = trainer.field.appearance is not None
-    views = iter_test_renders(trainer, fit_appearance=fitted)
-    whole_views = zip(iter_test_renders(trainer), iter_test_renders(trainer, nearest_code=True)) if fitted else \
-        itertools.repeat(None)
+    views = iter_test_renders(trainer, fit_appearance=fitted, whole_codes=True)
     per_image = []
     bar = progress(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths, \
             BackgroundWrites() as writes:
-        for (name, out, gt), whole in zip(views, whole_views):
+        for name, out, gt in views:
             stem = Path(name).stem
             if fitted:
                 scores, lpips_note = _scores(right_half(out["rgb"]), right_half(gt))
-                scores["psnr_mean_code"] = psnr(whole[0][1]["rgb"], gt)
-                scores.update(_nearest_code_scores(whole[1][1]["rgb"], gt))
+                nearest, mean = out["other_rgb"]
+                scores["psnr_mean_code"] = psnr(mean, gt)
+                scores.update(_nearest_code_scores(nearest, gt))
             else:
                 scores, lpips_note = _scores(out["rgb"], gt)
             per_image.append({"image": name, **scores})

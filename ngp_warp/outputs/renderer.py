@@ -27,6 +27,7 @@ What makes it fast, next to a training render of the same rays:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 
@@ -158,16 +159,18 @@ def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
 
 
 def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor,
-                  stratified: bool, appearance_code: torch.Tensor | None, first_round: int | None) -> dict:
+                  stratified: bool, codes: list[torch.Tensor | None], first_round: int | None) -> dict:
     """One chunk of N rays (see the module): march, σ and h of the marched samples (:func:`_geometry`),
-    prune, the colour MLP on the kept samples' h, composite over ``bg`` [3] or [N, 3].
+    prune, then for each of the K ``codes`` (resolved [A] codes, or [None] without appearance
+    codes) the colour MLP on the kept samples' h and the composite over ``bg`` [3] or [N, 3].
 
-    Returns ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] float32 and host ints
-    ``n_marched``, ``n_encoded`` (through the density MLP), ``n_shaded`` (through the colour MLP).
+    Returns ``rgb`` [K, N, 3], ``opacity`` [N], ``depth`` [N] float32 and host ints
+    ``n_marched``, ``n_encoded`` (through the density MLP), ``n_shaded`` (through the colour MLP,
+    per code).
     """
     field, eps, n_rays = model.field, model.early_stop_eps, rays_o.shape[0]
     samples = ray_marching(rays_o, rays_d, model.grid, model.march_options(stratified), validate=False)
-    out = {"rgb": bg.expand(n_rays, 3).clone(), "opacity": torch.zeros(n_rays, device=rays_o.device),
+    out = {"rgb": bg.expand(len(codes), n_rays, 3).clone(), "opacity": torch.zeros(n_rays, device=rays_o.device),
            "depth": torch.zeros(n_rays, device=rays_o.device), "n_marched": samples.n_samples, "n_encoded": 0,
            "n_shaded": 0}
     if samples.n_samples == 0:
@@ -179,28 +182,33 @@ def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tens
         if kept.n_samples == 0:  # early_stop_eps > 1: nothing composites
             return out
         rows = _marched_rows(samples.ray_offsets, kept)
-        rgbs = field.colour(gather_rows(h, rows), kept.directions, appearance_code)
-    rgb, out["opacity"], out["depth"], _ = composite_packed(gather_rows(sigma, rows), rgbs, kept.t_starts, kept.t_ends,
-                                                            kept.ray_offsets, eps)
-    out["rgb"] = rgb + bg * (1.0 - out["opacity"])[:, None]
+        kept_h, kept_sigma = gather_rows(h, rows), gather_rows(sigma, rows)
+        for k, code in enumerate(codes):  # σ, and so the weights, opacity and depth, are the code's too
+            rgbs = field.colour(kept_h, kept.directions, code)
+            rgb, out["opacity"], out["depth"], _ = composite_packed(kept_sigma, rgbs, kept.t_starts, kept.t_ends,
+                                                                    kept.ray_offsets, eps)
+            out["rgb"][k] = rgb + bg * (1.0 - out["opacity"])[:, None]
     return out
 
 
 def _render_rays(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor | None,
-                 spp: int, code: torch.Tensor | None, first_round: int | None, chunk_size, sizer: ChunkSizer | None):
+                 spp: int, codes: list[torch.Tensor | None], first_round: int | None, chunk_size,
+                 sizer: ChunkSizer | None):
     """Rays [R, 3] rendered ``spp`` times in chunks of ``chunk_size(remaining rays)`` rays
-    (:func:`_render_chunk`) → rgb [R, 3], depth [R], opacity [R] summed over the ``spp`` renders,
-    and the host counts summed likewise; ``sizer`` (when given) observes every chunk."""
+    (:func:`_render_chunk`, coloured with each of the K ``codes``) → rgb [K, R, 3], depth [R],
+    opacity [R] summed over the ``spp`` renders, and the host counts summed likewise; ``sizer``
+    (when given) observes every chunk."""
     total, dev = rays_o.shape[0], rays_o.device
-    rgb, depth, opacity = torch.zeros(total, 3, device=dev), torch.zeros(total, device=dev), torch.zeros(total, device=dev)
+    rgb, depth = torch.zeros(len(codes), total, 3, device=dev), torch.zeros(total, device=dev)
+    opacity = torch.zeros(total, device=dev)
     counts = {"n_marched": 0, "n_encoded": 0, "n_shaded": 0}
     for _ in range(spp):
         lo = 0
         while lo < total:
             hi = min(total, lo + chunk_size(total - lo))
             chunk_bg = model.field.background(rays_d[lo:hi]) if bg is None else bg
-            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, code, first_round)
-            rgb[lo:hi] += out["rgb"]
+            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, codes, first_round)
+            rgb[:, lo:hi] += out["rgb"]
             depth[lo:hi] += out["depth"]
             opacity[lo:hi] += out["opacity"]
             for key in counts:
@@ -215,7 +223,8 @@ def _render_rays(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tenso
 def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, *,
                 distortion: torch.Tensor | None = None, fisheye: bool = False, background: float | None = 1.0,
                 chunk: int | None = None, spp: int = 1, supersample: int = 1,
-                appearance_code: torch.Tensor | None = None, first_round: int | str | None = "auto") -> dict:
+                appearance_code: torch.Tensor | None = None, other_codes: Sequence[torch.Tensor | None] = (),
+                first_round: int | str | None = "auto") -> dict:
     """Render one camera with the model's field in eval mode.
 
     Each pixel is the mean of ``supersample``² rays through its sub-pixel centres (the grid of
@@ -235,6 +244,9 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
             The image does not depend on it.
         appearance_code: [A] float32 appearance code for every ray (e.g. one fitted to a test
             view); None: the mean training code. Only for fields with appearance codes.
+        other_codes: more codes ([A] float32 each, or None for the mean code) to colour the same
+            samples with: the view as each would render it, at the cost of one colour MLP and
+            composite each (σ does not depend on the code). Only for fields with appearance codes.
         first_round: samples per ray encoded before the rays that are already opaque stop (see
             the module); None encodes every marched sample at once; ``"auto"``
             (:func:`auto_first_round`) takes it from the model's last view. Speed only: the
@@ -244,7 +256,8 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
         dict with ``rgb`` [H, W, 3] float32 in [0, 1], ``depth`` and ``opacity`` [H, W] float32
         (depth is Σ w t: divide by opacity for the surface distance), and host ints
         ``n_marched`` (samples marched), ``n_encoded`` (through the hash grid and density MLP) and
-        ``n_shaded`` (through the colour network).
+        ``n_shaded`` (through the colour network, per code); with ``other_codes``,
+        ``other_rgb`` [K, H, W, 3] float32, the view coloured with each of them.
     """
     _check_camera(c2w, intrinsics, distortion, width, height, spp, supersample, fisheye)
     for name, value in (("chunk", chunk), ("first_round", None if first_round == "auto" else first_round)):
@@ -253,7 +266,9 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
                              f"got {value!r}")
     if first_round == "auto":
         first_round = auto_first_round(model.view_shaded_per_ray)
-    code = model.field.appearance_code(appearance_code)
+    if other_codes and model.field.appearance is None:
+        raise ValueError("other_codes given, but this field has no appearance codes (appearance_dim 0)")
+    codes = [model.field.appearance_code(c) for c in (appearance_code, *other_codes)]
     if model.field.training:
         model.field.eval()
     dev = model.device
@@ -267,16 +282,18 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     # every sub-pixel's rays in one set: chunks as large for supersampled views as for plain ones
     rays = [view_rays(c2w, intrinsics, distortion, width, height, dev, fisheye, shift) for shift in shifts]
     rays_o, rays_d = (torch.cat(r) for r in zip(*rays)) if len(rays) > 1 else rays[0]
-    rgb, depth, opacity, counts = _render_rays(model, rays_o, rays_d, bg, spp, code, first_round,
+    rgb, depth, opacity, counts = _render_rays(model, rays_o, rays_d, bg, spp, codes, first_round,
                                                lambda remaining: chunk or sizer.next_size(remaining), sizer)
     if sizer is not None:
         model.view_samples_per_ray = sizer.samples_per_ray
     model.view_shaded_per_ray = counts["n_shaded"] / (rays_o.shape[0] * spp)
     scale = 1.0 / (len(shifts) * spp)
+    rgb = rgb.view(len(codes), -1, n, 3).sum(1).mul_(scale).clamp_(0, 1).reshape(len(codes), height, width, 3)
     return {
-        "rgb": rgb.view(-1, n, 3).sum(0).mul_(scale).clamp_(0, 1).reshape(height, width, 3),
+        "rgb": rgb[0],
         "depth": depth.view(-1, n).sum(0).mul_(scale).reshape(height, width),
         "opacity": opacity.view(-1, n).sum(0).mul_(scale).reshape(height, width),
         **counts,
+        **({"other_rgb": rgb[1:]} if other_codes else {}),
     }
 

@@ -288,20 +288,21 @@ class Trainer:
     def render_image(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                      distortion: torch.Tensor | None = None, background: float | None = 1.0, chunk: int | None = None,
                      spp: int = 1, fisheye: bool = False, supersample: int | None = None,
-                     appearance_code: torch.Tensor | None = None, first_round: int | str | None = "auto") -> dict:
+                     appearance_code: torch.Tensor | None = None, other_codes: tuple = (),
+                     first_round: int | str | None = "auto") -> dict:
         """:func:`ngp_warp.outputs.renderer.render_view` of one camera with the weight average (when
         on) and the training pixels' sub-pixel grid: [3, 4] c2w, [4] fx fy cx cy, optional [6]
         k1 k2 k3 k4 p1 p2 distortion (``fisheye``: OpenCV's fisheye lens) → rgb [H, W, 3],
         depth/opacity [H, W]. ``spp`` > 1 averages that many renders with jittered sample
         offsets along each ray; ``chunk`` None sizes the ray chunks to memory; ``supersample``
         overrides the sub-pixel grid (1: one ray per pixel, for previews); ``appearance_code``
-        [A] float32 colours every ray (None: the mean training code); ``first_round`` as in
-        ``render_view`` (speed only)."""
+        [A] float32 colours every ray (None: the mean training code); ``other_codes`` and
+        ``first_round`` as in ``render_view``."""
         with self.weights.averaged_in_field():
             return render_view(self.model, c2w, intrinsics, width, height, distortion=distortion, fisheye=fisheye,
                                background=background, chunk=chunk, spp=spp,
                                supersample=supersample or self.config.supersample, appearance_code=appearance_code,
-                               first_round=first_round)
+                               other_codes=other_codes, first_round=first_round)
 
     # -- state -----------------------------------------------------------------------------
     def state_dict(self) -> dict:
