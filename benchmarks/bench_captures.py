@@ -24,7 +24,8 @@ then with the mean code), the right-half
 PSNR with a code fitted on the left half (codes on), SSIM (as metrics.json: right half where
 codes are on), steps, ms per step, trained samples per ray, the contraction the run used.
 ``OUT/captures.png`` shows each row's first held-out view: ground truth, render, depth.
-``--compare KEY=VALUE`` adds a row per scene trained with that setting. Writes
+``--compare KEY=VALUE`` adds a row per scene trained with that setting, and a second table: its
+whole-image PSNR minus the defaults' trained with the same seeds (mean ± sd over the pairs). Writes
 ``OUT/captures.json`` with every run.
 """
 
@@ -151,7 +152,7 @@ def summary(runs: list[dict]) -> dict:
         return {"error": runs[0]["error"]}
     coded = "psnr_mean_code" in ok[0]
     columns = {
-        "whole": [r["psnr_nearest_code"] if coded else r["psnr"] for r in ok],
+        "whole": [whole_psnr(r) for r in ok],
         "mean_code": [r["psnr_mean_code"] for r in ok] if coded else None,
         "right": [r["psnr"] for r in ok] if coded else None,
         "ssim": [r["ssim"] for r in ok],
@@ -165,6 +166,30 @@ def summary(runs: list[dict]) -> dict:
     out["contraction"] = ", ".join(k if len(used) == 1 else f"{k} ×{n}" for k, n in used.items())
     out["runs"] = len(ok)
     return out
+
+
+def whole_psnr(run: dict) -> float:
+    """A run's whole-image PSNR as the table's "PSNR whole" column reads it."""
+    return run["psnr_nearest_code"] if "psnr_nearest_code" in run else run["psnr"]
+
+
+def paired(runs: list[dict], base: list[dict]) -> dict:
+    """The whole-image PSNR of ``runs`` minus that of ``base`` trained with the same seeds (the
+    i-th of each), over the pairs in which both trained: mean, sd and the number of pairs."""
+    deltas = [whole_psnr(r) - whole_psnr(b) for r, b in zip(runs, base) if "error" not in r and "error" not in b]
+    if not deltas:
+        return {"pairs": 0}
+    return {"pairs": len(deltas), "delta": statistics.fmean(deltas),
+            "delta_sd": statistics.stdev(deltas) if len(deltas) > 1 else 0.0}
+
+
+def pair_table(rows: list[tuple[str, str, dict]]) -> str:
+    """The compared settings against the defaults, seed by seed (:func:`paired`)."""
+    lines = ["| scene | setting | Δ PSNR whole against the defaults, same seeds | pairs |", "|---|---|---:|---:|"]
+    for name, setting, d in rows:
+        delta = "" if d["pairs"] == 0 else f"{d['delta']:+.2f}" + (f" ± {d['delta_sd']:.2f}" if d["pairs"] > 1 else "")
+        lines.append(f"| {name} | {setting} | {delta} | {d['pairs']} |")
+    return "\n".join(lines)
 
 
 def table(rows: list[tuple[str, str, dict]]) -> str:
@@ -201,19 +226,25 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown scene {unknown[0]!r}; scenes: {', '.join(SCENES)}")
     args.out.mkdir(parents=True, exist_ok=True)
-    rows, record, pictures = [], [], []
+    rows, pairs, record, pictures = [], [], [], []
     for name in names:
         folder = scene_folder(name, args.out / "scenes", args)
         for setting in ["defaults", *args.compare]:
             settings = [] if setting == "defaults" else setting.split(",")
             runs = [train(folder, args.out / "runs" / f"{name}-{setting}-{seed}", args, seed, settings)
                     for seed in range(args.seed, args.seed + args.runs)]
+            if setting == "defaults":
+                base = runs
+            else:
+                pairs.append((name, setting, paired(runs, base)))
             pictures.append(picture(args.out / "runs" / f"{name}-{setting}-{args.seed}", runs[0]))
             rows.append((name, setting, summary(runs)))
             record.append({"scene": name, "setting": setting, "runs": [
                 {k: v for k, v in r.items() if k != "per_image"} for r in runs]})
             print(table(rows[-1:]).splitlines()[-1], flush=True)
     print(f"\n{args.seconds:g} s per run on {args.device}\n" + table(rows))
+    if pairs:
+        print("\n" + pair_table(pairs))
     shown = [p for p in pictures if p is not None]
     if shown:  # one row per scene and setting: ground truth, render, depth of the first held-out view
         width = max(p.shape[1] for p in shown)

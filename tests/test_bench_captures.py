@@ -27,3 +27,17 @@ def test_the_summary_counts_the_contraction_each_run_used_where_a_probe_chose_di
     assert row.startswith("| unbounded-colmap | defaults | none ×2, l2 ×1 | 32.00 ± 1.00 | 31.50 | 32.25 |")
     failed = bench_captures.summary([{"error": "out of memory"}])
     assert "failed: out of memory" in bench_captures.table([("room-colmap", "defaults", failed)])
+
+
+def test_a_compared_setting_is_scored_against_the_defaults_of_the_same_seeds():
+    base = [run(32.0, "none"), run(31.0, "none"), {"error": "failed"}]
+    compared = [run(31.5, "none"), run(31.0, "none"), run(40.0, "none")]  # the third has no pair
+    d = bench_captures.paired(compared, base)
+    assert d["pairs"] == 2 and d["delta"] == pytest.approx(-0.25) and d["delta_sd"] == pytest.approx(0.3535534)
+    uncoded = {k: v for k, v in run(30.0, "none").items() if k not in ("psnr_nearest_code", "psnr_mean_code")}
+    assert bench_captures.paired([uncoded], [run(29.0, "none")])["delta"] == pytest.approx(30.25 - 29.0)
+    assert bench_captures.paired([{"error": "x"}], base) == {"pairs": 0}
+    lines = bench_captures.pair_table([("demo-colmap", "field.n_levels=8", d),
+                                       ("fox", "field.n_levels=8", {"pairs": 0})]).splitlines()
+    assert lines[2] == "| demo-colmap | field.n_levels=8 | -0.25 ± 0.35 | 2 |"
+    assert lines[3] == "| fox | field.n_levels=8 |  | 0 |"
