@@ -52,7 +52,8 @@ def timed_pass(trainer, views: int, work) -> float:
 
 def code_parts(trainer, views: int) -> list[tuple[str, float]]:
     """ms per view of each part of the evaluation's code path over ``views`` test views (the
-    device synchronised around each part)."""
+    device synchronised around each part). The code alone is fitted, as for runs without camera
+    refinement (a refined run's evaluation fits the pose as well and renders twice)."""
     sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
     split, background = trainer.scene.test, trainer.view_background
     white = torch.ones(3, device=trainer.device)

@@ -137,8 +137,9 @@ def test_a_views_fitted_pose_turns_back_towards_the_true_one(tiny_scene):  # noq
 
 
 def test_evaluation_of_a_refined_run_fits_each_views_pose(tiny_scene, tmp_path):  # noqa: F811
-    from ngp_warp.outputs.evaluate import evaluate, iter_test_renders
+    from ngp_warp.outputs.evaluate import composite_on, evaluate, iter_test_renders
     from ngp_warp.outputs.metrics import psnr
+    from ngp_warp.training.appearance_fit import fit_appearance_and_pose
 
     cfg = tiny_config(20)
     cfg.camera_refinement, cfg.field.appearance_dim = True, 4
@@ -148,6 +149,10 @@ def test_evaluation_of_a_refined_run_fits_each_views_pose(tiny_scene, tmp_path):
     assert metrics["appearance"].startswith("code and pose fitted on the left half")
     assert len(metrics["per_image"]) == 3 and all(math.isfinite(m["psnr"]) for m in metrics["per_image"])
     # the whole-image scores are the views at their recorded poses, not at the fitted ones
+    camera = trainer.scene.test.camera(0)
+    gt = composite_on(trainer.scene.test.images[0], torch.ones(3))
+    _, fitted_c2w = fit_appearance_and_pose(trainer, **camera, image=gt, background=trainer.view_background)
+    assert not torch.equal(fitted_c2w, camera["c2w"])  # the fit moves the pose: the whole views are a second render
     for record, (_, near, gt), (_, mean, _) in zip(metrics["per_image"], iter_test_renders(trainer, nearest_code=True),
                                                    iter_test_renders(trainer), strict=True):
         assert record["psnr_nearest_code"] == pytest.approx(psnr(near["rgb"], gt), abs=1e-6)

@@ -245,11 +245,11 @@ def test_appearance_codes_colour_the_view(trainer, coded_model):
     torch.testing.assert_close(other["opacity"], mean["opacity"])  # the code changes colour only
 
 
-@pytest.mark.parametrize("supersample", [1, 2])
-def test_other_codes_colour_the_same_samples_as_their_own_renders(trainer, coded_model, supersample):
+@pytest.mark.parametrize("supersample, chunk", [(1, None), (2, None), (2, 37)])
+def test_other_codes_colour_the_same_samples_as_their_own_renders(trainer, coded_model, supersample, chunk):
     c2w, intr = camera(trainer)
     codes = [torch.tensor([10.0, -10, 5, 0]), None, coded_model.field.appearance.weight[3]]
-    shared = render_view(coded_model, c2w, intr, W, H, background=0.5, supersample=supersample,
+    shared = render_view(coded_model, c2w, intr, W, H, background=0.5, supersample=supersample, chunk=chunk,
                          appearance_code=codes[0], other_codes=codes[1:])
     assert shared["other_rgb"].shape == (2, H, W, 3)
     images = [shared["rgb"], *shared["other_rgb"]]

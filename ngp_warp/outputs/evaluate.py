@@ -101,14 +101,14 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
         code = None
         if nearest_code and trainer.field.appearance is not None and not fit:
             code = nearest_training_code(trainer, camera["c2w"])
-        posed = camera
-        if fit and trainer.cameras is not None:
+        posed, moved = camera, fit and trainer.cameras is not None  # the fit moves the pose too
+        if moved:
             code, c2w = fit_appearance_and_pose(trainer, **camera, image=gt, background=background)
             posed = {**camera, "c2w": c2w}
         elif fit:
             code = fit_appearance_code(trainer, **camera, image=gt, background=background)
         others = (nearest_training_code(trainer, camera["c2w"]), None) if fit and whole_codes else ()
-        shared = others if posed is camera else ()  # one set of samples serves every code at one pose
+        shared = () if moved else others  # one set of samples serves every code at one pose
         out = trainer.render_image(**posed, background=background, spp=spp, appearance_code=code, other_codes=shared)
         if others and not shared:
             whole = trainer.render_image(**camera, background=background, spp=spp, appearance_code=others[0],

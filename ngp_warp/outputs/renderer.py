@@ -106,7 +106,7 @@ def _check_camera(c2w, intrinsics, distortion, width: int, height: int, spp: int
 
 
 def _marched_rows(marched_offsets: torch.Tensor, kept: RaySamples) -> torch.Tensor:
-    """The row among the marched samples of each kept sample, [K] int64. prune_samples keeps a
+    """The row among the marched samples of each kept sample, [S] int64. prune_samples keeps a
     prefix of each ray's samples (front to back, no capacity: no padding), so kept row j of ray
     r is marched row ``marched_offsets[r] + j - kept.ray_offsets[r]``.
 
@@ -183,7 +183,7 @@ def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tens
             return out
         rows = _marched_rows(samples.ray_offsets, kept)
         kept_h, kept_sigma = gather_rows(h, rows), gather_rows(sigma, rows)
-        for k, code in enumerate(codes):  # σ, and so the weights, opacity and depth, are the code's too
+        for k, code in enumerate(codes):  # σ does not depend on the code: opacity and depth come out the same
             rgbs = field.colour(kept_h, kept.directions, code)
             rgb, out["opacity"], out["depth"], _ = composite_packed(kept_sigma, rgbs, kept.t_starts, kept.t_ends,
                                                                     kept.ray_offsets, eps)

@@ -12,7 +12,7 @@ import dataclasses
 import functools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from ngp_warp.progress import progress as progress_bar
@@ -288,7 +288,8 @@ class Trainer:
     def render_image(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
                      distortion: torch.Tensor | None = None, background: float | None = 1.0, chunk: int | None = None,
                      spp: int = 1, fisheye: bool = False, supersample: int | None = None,
-                     appearance_code: torch.Tensor | None = None, other_codes: tuple = (),
+                     appearance_code: torch.Tensor | None = None,
+                     other_codes: Sequence[torch.Tensor | None] = (),
                      first_round: int | str | None = "auto") -> dict:
         """:func:`ngp_warp.outputs.renderer.render_view` of one camera with the weight average (when
         on) and the training pixels' sub-pixel grid: [3, 4] c2w, [4] fx fy cx cy, optional [6]
