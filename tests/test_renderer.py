@@ -220,11 +220,14 @@ def test_kept_samples_take_their_rows_of_the_marched_samples(trainer):
 
 @pytest.fixture(scope="module")
 def coded_model(trainer):
-    """A random field with appearance codes (dense enough to see) on the trained grid."""
-    cfg = FieldConfig(n_levels=8, log2_hashmap_size=14, finest_resolution=128.0, hidden=32, appearance_dim=4)
+    """A random field with appearance codes (dense enough to see) and a learned environment on
+    the trained grid."""
+    cfg = FieldConfig(n_levels=8, log2_hashmap_size=14, finest_resolution=128.0, hidden=32, appearance_dim=4,
+                      environment=True)
     torch.manual_seed(3)
     field = NGPField(trainer.field.aabb, cfg, n_images=5)
     with torch.no_grad():
+        field.environment.weight.normal_(0.0, 1.0)
         field.encoding.params.uniform_(-1.0, 1.0)
         field.appearance.weight.normal_(0.0, 1.0)
         field.density_mlp[-1].weight[0] += 1.0
@@ -245,17 +248,20 @@ def test_appearance_codes_colour_the_view(trainer, coded_model):
     torch.testing.assert_close(other["opacity"], mean["opacity"])  # the code changes colour only
 
 
-@pytest.mark.parametrize("supersample, chunk", [(1, None), (2, None), (2, 37)])
-def test_other_codes_colour_the_same_samples_as_their_own_renders(trainer, coded_model, supersample, chunk):
+@pytest.mark.parametrize("supersample, chunk, background", [(1, None, 0.5), (2, None, 0.5), (2, 37, None)])
+def test_other_codes_colour_the_same_samples_as_their_own_renders(trainer, coded_model, supersample, chunk,
+                                                                  background):
     c2w, intr = camera(trainer)
+    model = RadianceModel(denser_field(coded_model.field, -1.0), trainer.grid, trainer.model.march)  # partly clear
     codes = [torch.tensor([10.0, -10, 5, 0]), None, coded_model.field.appearance.weight[3]]
-    shared = render_view(coded_model, c2w, intr, W, H, background=0.5, supersample=supersample, chunk=chunk,
+    shared = render_view(model, c2w, intr, W, H, background=background, supersample=supersample, chunk=chunk,
                          appearance_code=codes[0], other_codes=codes[1:])
     assert shared["other_rgb"].shape == (2, H, W, 3)
+    assert float(shared["opacity"].min()) < 0.9 < float(shared["opacity"].max())  # the background shows somewhere
     images = [shared["rgb"], *shared["other_rgb"]]
     for code, image in zip(codes, images, strict=True):
-        alone = render_view(coded_model, c2w, intr, W, H, background=0.5, supersample=supersample,
-                            appearance_code=code)
+        alone = render_view(model, c2w, intr, W, H, background=background, supersample=supersample,
+                            chunk=chunk, appearance_code=code)
         assert "other_rgb" not in alone
         torch.testing.assert_close(image, alone["rgb"], rtol=0, atol=1e-6)
         torch.testing.assert_close(shared["opacity"], alone["opacity"], rtol=0, atol=1e-6)
