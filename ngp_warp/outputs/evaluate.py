@@ -108,9 +108,9 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
         elif fit:
             code = fit_appearance_code(trainer, **camera, image=gt, background=background)
         others = (nearest_training_code(trainer, camera["c2w"]), None) if fit and whole_codes else ()
-        shared = () if moved else others  # one set of samples serves every code at one pose
-        out = trainer.render_image(**posed, background=background, spp=spp, appearance_code=code, other_codes=shared)
-        if others and not shared:
+        out = trainer.render_image(**posed, background=background, spp=spp, appearance_code=code,
+                                   other_codes=() if moved else others)  # one set of samples at one pose
+        if others and moved:  # the other codes' view is at the recorded pose: a render of its own
             whole = trainer.render_image(**camera, background=background, spp=spp, appearance_code=others[0],
                                          other_codes=others[1:])
             out["other_rgb"] = torch.cat([whole["rgb"][None], whole["other_rgb"]])
