@@ -1,5 +1,6 @@
 """Per-scene defaults: the contraction key, the 360° capture test, cone steps, appearance codes."""
 
+import dataclasses
 import json
 import math
 
@@ -8,9 +9,9 @@ import torch
 
 from ngp_warp.training.config import TrainConfig, resolve_defaults
 from ngp_warp.data.loading import DataError, load_scene
-from ngp_warp.training.scene_defaults import (appearance_dim, cameras_surround_centre, choose_contraction, cone_steps,
-                                     distortion_weight, occupancy_threshold,
-                                     contraction_box)
+from ngp_warp.training.scene_defaults import (FOCUS_NEAR_SHARE, appearance_dim, cameras_surround_centre, capture_near,
+                                              choose_contraction, cone_steps, contraction_box, distortion_weight,
+                                              focus_distance, occupancy_threshold)
 from ngp_warp.data.scene_unbounded import write_unbounded_scene
 
 
@@ -42,6 +43,39 @@ def test_cameras_surround_centre():
     outward = ring(24)
     outward[:, :, :3] = -outward[:, :, :3]  # the same ring looking away from the centre
     assert not cameras_surround_centre(outward)
+
+
+def test_focus_distance_of_cameras_that_look_at_one_point():
+    torch.manual_seed(1)
+    for arc in (2 * math.pi, math.pi):  # a walk around the subject, or half of one (fox)
+        c2w = ring(24, arc=arc)
+        eyes, target = c2w[:, :, 3], torch.tensor([1.0, -2.0, 0.5])
+        assert focus_distance(c2w) == pytest.approx(float((eyes - target).norm(dim=-1).median()), abs=0.2)
+    assert focus_distance(ring(6)) is None  # too few
+    eyes = torch.stack([torch.linspace(-1, 1, 20), torch.zeros(20), torch.full((20,), 4.0)], 1)
+    assert focus_distance(look_at(eyes, torch.tensor([0.0, 0.0, -100.0]), up=(0.0, 1.0, 0.0))) is None  # parallel axes
+    outward = ring(24)
+    outward[:, :, :3] = -outward[:, :, :3]
+    assert focus_distance(outward) is None
+
+
+def test_bounded_captures_start_their_rays_a_share_of_the_way_to_the_focus(tmp_path):
+    from ngp_warp.data.scene import write_demo_scene
+
+    scene = load_scene(write_unbounded_scene(tmp_path / "u", width=8, height=8, n_train=12, n_test=2))
+    focus = focus_distance(scene.train.c2w)
+    assert focus is not None and FOCUS_NEAR_SHARE * focus > 1.2 * scene.near
+    assert capture_near(scene, "l2") == scene.near  # contracted: the scene's own near
+    assert capture_near(scene, None) == pytest.approx(FOCUS_NEAR_SHARE * focus)
+    assert resolve_defaults(TrainConfig(), scene, "cpu").near == scene.near
+    assert resolve_defaults(TrainConfig(contraction=None), scene, "cpu").near == pytest.approx(FOCUS_NEAR_SHARE * focus)
+    assert resolve_defaults(TrainConfig(contraction=None, near=0.5), scene, "cpu").near == 0.5  # asked for
+    forward = look_at(torch.stack([torch.linspace(-1, 1, 12), torch.zeros(12), torch.full((12,), 4.0)], 1),
+                      torch.tensor([0.0, 0.0, -100.0]), up=(0.0, 1.0, 0.0))
+    facing = dataclasses.replace(scene, train=dataclasses.replace(scene.train, c2w=forward))
+    assert capture_near(facing, None) == scene.near  # no point the cameras look at
+    synthetic = load_scene(write_demo_scene(tmp_path / "demo", width=8, height=8, n_train=12, n_test=1))
+    assert capture_near(synthetic, None) == synthetic.near
 
 
 def test_unbounded_scene_asks_for_contraction_and_gets_cone_steps(tmp_path):

@@ -12,7 +12,8 @@ from ngp_warp.data.loading import Scene
 from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, FieldConfig
 from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
 from ngp_warp.training.model import FAR
-from ngp_warp.training.scene_defaults import (AUTO_FIT, CONTRACTION_FITS, PROBE_FIT, appearance_dim, choose_aabb_scale,
+from ngp_warp.training.scene_defaults import (AUTO_FIT, CONTRACTION_FITS, PROBE_FIT, appearance_dim, capture_near,
+                                             choose_aabb_scale,
                                              choose_contraction, cone_steps, contraction_box, distortion_weight,
                                              occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
@@ -73,7 +74,8 @@ class TrainConfig:
                                         # transparent (alpha 0 where every channel is 255), over random
                                         # backgrounds (an experiment: see docs/captures.md)
     near: float | None = None           # rays start this far from their camera, in the scene's lengths;
-                                        # None: the scene's (instant-ngp's 0.1 of its unit cube)
+                                        # None: per scene (0.3 of the distance to where a bounded
+                                        # capture's cameras look, else instant-ngp's 0.1 of its unit cube)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
     camera_lr: float = 1e-4             # its Adam learning rate (fox: instant-ngp's 1e-3 drifted 0.4°)
     field: FieldConfig = field(default_factory=FieldConfig)
@@ -253,7 +255,8 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str 
 def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> TrainConfig:
     """``config``, checked, or a copy with the settings left to None or "auto" filled in for the
     device (:func:`device_defaults`) and the scene (:mod:`ngp_warp.training.scene_defaults`: the
-    contraction, the field's box, the cone angle, the occupancy threshold, the distortion weight and the appearance code size;
+    contraction, the field's box, the cone angle, the occupancy threshold, the distortion weight, the near distance and
+    the appearance code size;
     the finest resolution, by
     :func:`pixel_matched_resolution`), so that checkpoints store the values used. Raises
     ValueError naming a setting out of range."""
@@ -272,7 +275,7 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     threshold = config.occupancy_threshold
     threshold = occupancy_threshold(scene) if threshold is None else threshold
     distortion = distortion_weight(scene, kind) if config.distortion_weight is None else config.distortion_weight
-    near = scene.near if config.near is None else config.near
+    near = capture_near(scene, kind) if config.near is None else config.near
     config = dataclasses.replace(config, contraction=kind, aabb_scale=aabb_scale, cone_angle=cone, occupancy_threshold=threshold,
                                  distortion_weight=distortion, near=near)
     field_config = config.field
