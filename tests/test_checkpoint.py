@@ -212,6 +212,22 @@ def test_checkpoint_from_before_distortion_spacing_keeps_world_distances(tiny_sc
     assert load_trainer(tmp_path / "c.pt", device="cpu")[0].config.distortion_spacing == "world"
 
 
+def test_checkpoint_without_a_near_keeps_the_scenes_own(tmp_path):
+    from ngp_warp.data.scene_unbounded import write_unbounded_scene
+
+    folder = write_unbounded_scene(tmp_path / "u", width=8, height=8, n_train=12, n_test=2)
+    scene = load_scene(folder)
+    trainer = Trainer(scene, dataclasses.replace(tiny_config(1), contraction=None), device="cpu")
+    assert trainer.config.near > 1.2 * scene.near  # a bounded capture's near from its cameras' focus
+    save_checkpoint(trainer, tmp_path / "c.pt", folder, 1)
+    assert load_trainer(tmp_path / "c.pt", device="cpu")[0].config.near == trainer.config.near
+    state = torch.load(tmp_path / "c.pt", weights_only=False)
+    del state["train_config"]["near"]  # written by a version that had no near setting
+    torch.save(state, tmp_path / "c.pt")
+    loaded = load_trainer(tmp_path / "c.pt", device="cpu")[0]
+    assert loaded.config.near == scene.near == loaded.model.march.near
+
+
 def test_contracted_checkpoint_from_before_the_environment_renders_over_black(tiny_scene, tmp_path):
     cfg = tiny_config(1)
     cfg.contraction = "l2"

@@ -17,6 +17,7 @@ from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.ops.occupancy import OccupancyGrid
 from ngp_warp.training import contraction_probe as probe
 from ngp_warp.training.config import TrainConfig, cpu_sizes
+from ngp_warp.training.scene_defaults import focus_distance
 from ngp_warp.training.trainer import Trainer, TrainingDiverged
 
 _spec = importlib.util.spec_from_file_location("capture_scenes",
@@ -78,9 +79,12 @@ def test_the_probe_starts_again_bounded_or_contracted_on_the_budget_left(sky, mo
         assert trainer.config.contraction is None and trainer.config.aabb_scale == probe.OBJECT_AABB_SCALE == 32
         assert trainer.grid.levels == 6 and trainer.config.field.environment and trainer.field.environment is not None
         assert trainer.model.learns_background
+        near = 0.3 * focus_distance(sky.train.c2w)  # a bounded capture's rays start 0.3 of the way to the focus
+        assert near > sky.near and trainer.config.near == pytest.approx(near) == trainer.model.march.near
     else:
         inner = Trainer(sky, small(steps=1, contraction_fit="cameras"), device="cpu").grid.inner_aabb_host
         assert trainer.config.contraction == "l2" and trainer.grid.inner_aabb_host == pytest.approx(inner)
+        assert trainer.config.near == sky.near  # contracted: the scene's own
         trainer.train(show_progress=False)
         assert trainer.step_count == 12
 

@@ -51,6 +51,10 @@ def test_focus_distance_of_cameras_that_look_at_one_point():
         c2w = ring(24, arc=arc)
         eyes, target = c2w[:, :, 3], torch.tensor([1.0, -2.0, 0.5])
         assert focus_distance(c2w) == pytest.approx(float((eyes - target).norm(dim=-1).median()), abs=0.2)
+    angles = torch.linspace(0, 2 * math.pi, 26)[:25]
+    radii = 2 + 7 * torch.linspace(0, 1, 25)[torch.randperm(25)] ** 2  # skewed: median 3.75, mean 4.43, least 2
+    eyes = torch.stack([radii * angles.cos(), radii * angles.sin(), 0.3 * radii], 1) + target
+    assert focus_distance(look_at(eyes, target)) == pytest.approx(3.75 * math.sqrt(1.09), rel=1e-5)
     assert focus_distance(ring(6)) is None  # too few
     eyes = torch.stack([torch.linspace(-1, 1, 20), torch.zeros(20), torch.full((20,), 4.0)], 1)
     assert focus_distance(look_at(eyes, torch.tensor([0.0, 0.0, -100.0]), up=(0.0, 1.0, 0.0))) is None  # parallel axes
@@ -66,7 +70,10 @@ def test_bounded_captures_start_their_rays_a_share_of_the_way_to_the_focus(tmp_p
     focus = focus_distance(scene.train.c2w)
     assert focus is not None and FOCUS_NEAR_SHARE * focus > 1.2 * scene.near
     assert capture_near(scene, "l2") == scene.near  # contracted: the scene's own near
-    assert capture_near(scene, None) == pytest.approx(FOCUS_NEAR_SHARE * focus)
+    assert FOCUS_NEAR_SHARE == 0.3 and capture_near(scene, None) == pytest.approx(0.3 * focus)
+    assert capture_near(dataclasses.replace(scene, near=5.0), None) == 5.0  # the scene's own, where larger
+    fisheye = dataclasses.replace(scene, train=dataclasses.replace(scene.train, fisheye=True))
+    assert capture_near(fisheye, None) == scene.near  # a wide view may hold content closer to its camera
     assert resolve_defaults(TrainConfig(), scene, "cpu").near == scene.near
     assert resolve_defaults(TrainConfig(contraction=None), scene, "cpu").near == pytest.approx(FOCUS_NEAR_SHARE * focus)
     assert resolve_defaults(TrainConfig(contraction=None, near=0.5), scene, "cpu").near == 0.5  # asked for

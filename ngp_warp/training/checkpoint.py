@@ -137,13 +137,13 @@ def _check_records(state: dict, path: Path) -> None:
         raise wrong("training time", seconds)
 
 
-def _train_config(path: Path, saved: dict) -> TrainConfig:
+def _train_config(path: Path, saved: dict, scene_near: float) -> TrainConfig:
     """The checkpoint's settings; CheckpointError for a setting this version does not have or
     accept. Checkpoints without sub-rays trained one ray per pixel, those without
     ``distortion_spacing`` took the distortion loss in world distances, and those without
     ``field.environment`` had no learned environment, those without ``aabb_scale`` the box of
-    the scene's files."""
-    saved = {"supersample": 1, "distortion_spacing": "world", "aabb_scale": None, **saved}
+    the scene's files, those without ``near`` the scene's own near (``scene_near``)."""
+    saved = {"supersample": 1, "distortion_spacing": "world", "aabb_scale": None, "near": scene_near, **saved}
     try:
         config = TrainConfig(**{**saved, "field": FieldConfig(**{"environment": False, **saved["field"]})})
         config.check()
@@ -203,7 +203,7 @@ def load_trainer(path: Path, device: str | None = None, scene_path: Path | None 
         except DataError as e:
             raise CheckpointError(f"{path}: cannot reload its scene: {e}") from None
         _check_same_scene(path, record, scene)
-        trainer = Trainer(scene, _train_config(path, state["train_config"]), device=device)
+        trainer = Trainer(scene, _train_config(path, state["train_config"], scene.near), device=device)
         _check_same_box(trainer, state, path)
         _restore(trainer, state, path)
     except KeyError as e:  # a part this version saves and the file lacks

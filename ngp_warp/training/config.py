@@ -74,8 +74,9 @@ class TrainConfig:
                                         # transparent (alpha 0 where every channel is 255), over random
                                         # backgrounds (an experiment: see docs/captures.md)
     near: float | None = None           # rays start this far from their camera, in the scene's lengths;
-                                        # None: per scene (0.3 of the distance to where a bounded
-                                        # capture's cameras look, else instant-ngp's 0.1 of its unit cube)
+                                        # None: per scene (a bounded capture: 0.3 of its cameras' median
+                                        # distance to where they look, or the scene's own near if larger;
+                                        # else the scene's, instant-ngp's 0.1 of its unit cube)
     camera_refinement: bool = False     # learn a pose correction per training image (bounded scenes)
     camera_lr: float = 1e-4             # its Adam learning rate (fox: instant-ngp's 1e-3 drifted 0.4°)
     field: FieldConfig = field(default_factory=FieldConfig)

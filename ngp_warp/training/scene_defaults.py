@@ -23,15 +23,17 @@
   finest cascade's visible cells occupied: 67 trained samples per ray (median), about 4k rays
   per step; 0.05 took it to 25 per ray and 10k rays per step at the same held-out PSNR
   (28.21 → 27.7–28.0 dB, mean code), while lego at 0.05 stayed within 0.05 dB.
-* Near distance: a bounded capture whose cameras look at one point (:func:`focus_distance`)
-  starts its rays 0.3 of the cameras' median distance to that point from each camera (fox: 1.52
-  against the files' 0.30), or the scene's own near if larger. Density closer to a camera than
-  that is seen by few other cameras, and there the field grows the floaters that held-out views
-  near a training camera see. On fox (H200, 60 s, RESULTS.md) it scored 30.53 dB over ten runs,
-  +0.47 dB on each of four seeds paired with the files' near, with no collapsed view and 17 in
-  place of 24 trained samples per ray; the other bounded capture scenes moved within their runs'
-  spread (−0.2 to +0.3 dB), the object over the sky gained. Contracted scenes and NeRF-synthetic
-  renders keep the scene's near.
+* Near distance: a bounded capture whose pinhole cameras converge on one point
+  (:func:`focus_distance`: a walk around a subject, part of one, or a converging forward-facing
+  set) starts its rays 0.3 of the cameras' median distance to that point from each camera (fox:
+  1.52 against the files' 0.30), or at the scene's own near if larger. Density closer to a
+  camera than that is seen by few other cameras, and there the field grows the floaters that
+  held-out views near a training camera see. On fox (H200, 60 s, RESULTS.md) it scored 30.53 dB
+  over ten runs, +0.31 to +0.67 dB on each of four seeds paired with the files' near (mean
+  +0.47), with no collapsed view and 17 in place of 24 trained samples per ray; the other
+  bounded capture scenes moved within their runs' spread (−0.2 to +0.3 dB), the objects over
+  the sky gained. Contracted scenes, NeRF-synthetic renders and fisheye captures keep the
+  scene's near.
 * Appearance codes: 16 per training image for captures (exposure and white balance vary),
   none for NeRF-synthetic renders.
 * Distortion loss (mip-NeRF 360), in its normalised distance s = 1 − near/t: weight 4e-3 on
@@ -113,7 +115,8 @@ def focus_distance(c2w: torch.Tensor) -> float | None:
     """The training cameras' (``c2w`` [N, 3, 4] float) median distance to the point they all look
     at, or None unless at least 8 cameras converge on one: their view axes spread (smallest
     eigenvalue of mean(I − f fᵀ) above 0.01, about 6°, as the scene normalisation asks) and they
-    look at that point (mean cosine ≥ 0.8), as a walk around a subject does (half rings too)."""
+    look at that point (mean cosine ≥ 0.8), as a walk around a subject does (half rings and
+    converging forward-facing sets too)."""
     if c2w.shape[0] < _MIN_CAMERAS:
         return None
     q, centres, forward, spread = _focus(c2w)
@@ -124,9 +127,10 @@ def focus_distance(c2w: torch.Tensor) -> float | None:
 
 def capture_near(scene: Scene, contraction: str | None) -> float:
     """The rays' near distance for ``scene`` trained with ``contraction`` (see the module
-    docstring): for a bounded capture whose cameras look at one point, the larger of the scene's
-    own near and :data:`FOCUS_NEAR_SHARE` of the cameras' median distance to it; else the scene's."""
-    if scene.source == "nerf-synthetic" or contraction is not None:
+    docstring): for a bounded capture of pinhole cameras that look at one point, the larger of the
+    scene's own near and :data:`FOCUS_NEAR_SHARE` of the cameras' median distance to it; else the
+    scene's (a fisheye's wide view may hold content closer to its camera)."""
+    if scene.source == "nerf-synthetic" or contraction is not None or scene.train.fisheye:
         return scene.near
     focus = focus_distance(scene.train.c2w)
     return scene.near if focus is None else max(scene.near, round(FOCUS_NEAR_SHARE * focus, 6))
