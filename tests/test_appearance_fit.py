@@ -121,6 +121,17 @@ def test_fit_sees_only_the_left_half_and_is_deterministic(trained):
     assert not torch.equal(fit_appearance_code(trained, **view(trained), image=left, background=0.0, **FIT), code)
 
 
+def test_the_fit_starts_from_the_code_given(trained):
+    with trained.weights.averaged_in_field():  # the fit renders with the weight average, its codes too
+        codes = trained.field.appearance.weight.detach().clone()
+    target = render(trained, codes[3])
+    still = dict(image=target, background=0.0, iterations=1, lr=1e-9)  # one step too small to move it
+    assert torch.allclose(fit_appearance_code(trained, **view(trained), **still), codes.mean(0), atol=1e-6)
+    assert torch.allclose(fit_appearance_code(trained, **view(trained), **still, start=codes[3]), codes[3], atol=1e-6)
+    with pytest.raises(ValueError, match="start must be one code of"):
+        fit_appearance_code(trained, **view(trained), **still, start=codes[:2])
+
+
 def test_random_batches_are_seeded(trained):
     target = render(trained, None) * 0.7
     fit = dict(image=target, background=0.0, iterations=20, rays_per_iteration=64)  # fewer than 288 pixels

@@ -119,7 +119,7 @@ def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.T
                         image: torch.Tensor, distortion: torch.Tensor | None = None, fisheye: bool = False,
                         background: float | None = 1.0, iterations: int = FIT_ITERATIONS,
                         rays_per_iteration: int | None = None, lr: float = FIT_LR,
-                        seed: int = 0) -> torch.Tensor:
+                        seed: int = 0, start: torch.Tensor | None = None) -> torch.Tensor:
     """The appearance code that best renders the left half of ``image`` (the math in the module
     docstring), the field's weights untouched.
 
@@ -154,6 +154,8 @@ def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.T
         iterations, rays_per_iteration, lr: Adam's iterations, batch (None: by the device,
             :data:`FIT_RAYS_PER_ITERATION`) and learning rate.
         seed: the pixels' random generator (the fit is deterministic given it).
+        start: [A] float32 code Adam starts from (e.g. the nearest training camera's); None: the
+            mean of the training codes.
 
     Returns:
         [A] float32 code on the trainer's device (detached).
@@ -162,13 +164,14 @@ def fit_appearance_code(trainer: Trainer, c2w: torch.Tensor, intrinsics: torch.T
         ValueError: one line, for a field without appearance codes or inputs of the wrong shape.
     """
     return _fit(trainer, c2w, intrinsics, width, height, image, distortion, fisheye, background, iterations,
-                rays_per_iteration, lr, seed, None)
+                rays_per_iteration, lr, seed, None, start)
 
 
 def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, distortion, fisheye: bool,
          background: float | None, iterations: int, rays_per_iteration: int | None, lr: float, seed: int,
-         pose: CameraRefinement | None) -> torch.Tensor:
-    """The fit of :func:`fit_appearance_code`, and of ``pose`` (in place) when given."""
+         pose: CameraRefinement | None, start: torch.Tensor | None = None) -> torch.Tensor:
+    """The fit of :func:`fit_appearance_code` from ``start`` (None: the mean code), and of
+    ``pose`` (in place) when given."""
     dev, field = trainer.device, trainer.field
     if rays_per_iteration is None:
         rays_per_iteration = FIT_RAYS_PER_ITERATION.get(dev.type, FIT_RAYS_PER_ITERATION["cuda"])
@@ -184,7 +187,10 @@ def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, dist
                              None if dist_n is None else dist_n.expand(n, 6), px, py, fisheye=fisheye)
 
     with trainer.weights.averaged_in_field():
-        code = field.appearance.weight.detach().mean(0).clone().requires_grad_(True)
+        codes = field.appearance.weight.detach()
+        if start is not None and tuple(start.shape) != (codes.shape[1],):
+            raise ValueError(f"start must be one code of {codes.shape[1]} values, got shape {tuple(start.shape)}")
+        code = (codes.mean(0) if start is None else start.detach().to(codes)).clone().requires_grad_(True)
         adam = Adam([code], lr=lr)
         if pose is None:
             _fit_code(trainer, code, adam, rays, px_all, py_all, target_image, background)
