@@ -13,9 +13,8 @@ from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, Fi
 from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
 from ngp_warp.training.model import FAR
 from ngp_warp.training.scene_defaults import (AUTO_FIT, CONTRACTION_FITS, PROBE_FIT, appearance_dim, capture_near,
-                                             choose_aabb_scale,
-                                             choose_contraction, cone_steps, contraction_box, distortion_weight,
-                                             occupancy_threshold)
+                                             choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
+                                             distortion_weight, occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
 
 AABB_SCALES = tuple(2**k for k in range(MAX_AABB_SCALE.bit_length()))  # field boxes of 1 ... 2^15 unit cubes
@@ -256,9 +255,8 @@ def pixel_matched_resolution(scene: Scene, subpixels: int = 1, contraction: str 
 def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> TrainConfig:
     """``config``, checked, or a copy with the settings left to None or "auto" filled in for the
     device (:func:`device_defaults`) and the scene (:mod:`ngp_warp.training.scene_defaults`: the
-    contraction, the field's box, the cone angle, the occupancy threshold, the distortion weight, the near distance and
-    the appearance code size;
-    the finest resolution, by
+    contraction, the field's box, the cone angle, the occupancy threshold, the distortion weight,
+    the near distance and the appearance code size; the finest resolution, by
     :func:`pixel_matched_resolution`), so that checkpoints store the values used. Raises
     ValueError naming a setting out of range."""
     config.check()
