@@ -36,7 +36,7 @@ def test_train_eval_render(scene, tmp_path, capsys):
     assert main(["train", str(scene), "--out", str(out), "--steps", "20", "--frames", "3",
                  "--set", "distortion_weight=0.01", *FAST]) == 0
     err = capsys.readouterr().err
-    assert "distortion loss weight 0.01 (normalised), 1x1 rays per pixel" in err
+    assert "distortion loss weight 0.01 (normalised), 1x1 rays per pixel, starting 0.3 from their camera" in err
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr", "ssim", "train_seconds", "steps", "per_image"):
         assert key in metrics

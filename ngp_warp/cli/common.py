@@ -235,7 +235,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
           f"level {trainer.config.field.finest_resolution:g} cells, table 2^{trainer.config.field.log2_hashmap_size} "
           f"per level, distortion loss weight {trainer.config.distortion_weight:g}"
           f"{f' ({trainer.config.distortion_spacing})' if trainer.config.distortion_weight else ''}, "
-          f"{trainer.config.supersample}x{trainer.config.supersample} rays per pixel", file=sys.stderr)
+          f"{trainer.config.supersample}x{trainer.config.supersample} rays per pixel, starting "
+          f"{trainer.config.near:g} from their camera", file=sys.stderr)
     if scene.test_is_heldout:
         print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
               file=sys.stderr)
