@@ -6,6 +6,7 @@ import signal
 import subprocess
 import time
 
+import imageio.v3 as iio
 import pytest
 import torch
 
@@ -54,6 +55,13 @@ def test_train_eval_render(scene, tmp_path, capsys):
     assert "PSNR" in capsys.readouterr().out
     assert main(["render", str(out), "--video", "spin.gif", "--frames", "2", "--device", "cpu", "--quiet"]) == 0
     assert (out / "spin.gif").stat().st_size > 0
+    for near, blank in ((0.5, False), (100.0, True)):  # the cameras are about 4 from a subject within ±1.5
+        assert main(["render", str(out), "--video", "near.gif", "--frames", "2", "--near", str(near), "--device", "cpu",
+                     "--quiet"]) == 0
+        frames = iio.imread(out / "near.gif", index=None)[..., :3]
+        assert bool((frames == 255).all()) == blank, near  # beyond the subject: only the white background
+    assert main(["render", str(out), "--video", "far.gif", "--near", "1e5", "--device", "cpu"]) == 2
+    assert "--near must be below the rays' far distance" in capsys.readouterr().err
 
     assert main(["train", str(scene), "--out", str(out), "--resume", "--steps", "5", "--no-video", *FAST]) == 0
     assert json.loads((out / "metrics.json").read_text())["steps"] == 25

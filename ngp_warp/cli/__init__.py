@@ -78,6 +78,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--video", default="orbit.mp4", help="video path (.mp4, or .gif; relative to DIR)")
     add_path_arguments(r)
     r.add_argument("--scene", help="scene folder, if it moved since training")
+    r.add_argument("--near", type=positive(float), metavar="D",
+                   help="rays start D from their camera, in the scene's lengths (default: where training's "
+                        "started; a path closer to the subject than the training cameras needs less)")
     common(r)
     r.set_defaults(func=cmd_render)
 

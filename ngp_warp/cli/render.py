@@ -23,6 +23,7 @@ def add_path_arguments(parser: argparse.ArgumentParser) -> None:
 
 def cmd_render(args) -> None:
     from ngp_warp.training.checkpoint import load_trainer
+    from ngp_warp.training.model import FAR
     from ngp_warp.outputs.video_out import PATH_KINDS, camera_path_from_args, depth_path, render_trainer_video
 
     video = output_file(Path(args.dir), args.video, "--video", (".mp4", ".gif"))  # before any work
@@ -30,10 +31,14 @@ def cmd_render(args) -> None:
         output_file(video.parent, depth_path(video).name, "--depth-video", (video.suffix.lower(),))
     if args.path not in PATH_KINDS and not Path(args.path).is_file():
         raise UserError(f"--path {args.path}: no such file (or use {' or '.join(PATH_KINDS)})")
+    if args.near is not None and args.near >= FAR:
+        raise UserError(f"--near must be below the rays' far distance {FAR:g}, got {args.near:g}")
     trainer, record = load_trainer(Path(args.dir) / CHECKPOINT, device=resolve_device(args.device), scene_path=args.scene)
     try:
         path = camera_path_from_args(args, trainer.scene, record["path"])
     except ValueError as e:
         raise UserError(str(e)) from None
+    if args.near is not None:
+        trainer.model.start_rays_at(args.near)
     for written in render_trainer_video(trainer, path, video, depth=args.depth_video, quiet=args.quiet):
         print(f"wrote {written}")

@@ -48,6 +48,14 @@ class RadianceModel:
         # encoding is sized by it (see ngp_warp.outputs.renderer.auto_first_round), None before any view
         self.view_shaded_per_ray: float | None = None
 
+    def start_rays_at(self, near: float) -> None:
+        """March every later ray from ``near`` (world units, above 0 and below the far distance;
+        ValueError otherwise), as a render closer to the subject than the training cameras needs."""
+        if not 0 < near < self.march.far:
+            raise ValueError(f"near must be above 0 and below the rays' far distance {self.march.far:g}, got {near!r}")
+        self.march = dataclasses.replace(self.march, near=near)
+        self._stratified = dataclasses.replace(self._stratified, near=near)
+
     @classmethod
     def for_scene(cls, scene: Scene, field_config: FieldConfig, device: torch.device, *, grid_resolution: int,
                   steps_per_diagonal: int, cone_angle: float, contraction: str | None = None,
