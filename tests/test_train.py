@@ -321,3 +321,14 @@ def test_supersampled_training_fits_pixels_as_means_of_sub_rays(tiny_scene):
     scene = load_scene(tiny_scene)
     scene.train.intrinsics = scene.train.intrinsics * 10  # clear of the 64-cell floor
     assert abs(pixel_matched_resolution(scene, 4) - 2 * pixel_matched_resolution(scene)) <= 1  # √4 × finer
+
+
+def test_rays_start_where_a_render_asks(tiny_scene):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
+    model, far = trainer.model, trainer.model.march.far
+    for bad in (0.0, -1.0, far, far * 2):
+        with pytest.raises(ValueError, match="near must be above 0 and below"):
+            model.start_rays_at(bad)
+    model.start_rays_at(2.0)
+    assert model.march.near == 2.0 and model.march.far == far and not model.march.stratified
+    assert model._stratified.near == 2.0 and model._stratified.stratified
