@@ -125,12 +125,18 @@ def focus_distance(c2w: torch.Tensor) -> float | None:
     return float((centres - q).norm(dim=-1).median())
 
 
+def bounded_capture(scene: Scene, contraction: str | None) -> bool:
+    """Whether ``scene`` trained with ``contraction`` is a capture (not a NeRF-synthetic render)
+    trained bounded, which the near distance and the distortion loss treat apart."""
+    return scene.source != "nerf-synthetic" and contraction is None
+
+
 def capture_near(scene: Scene, contraction: str | None) -> float:
     """The rays' near distance for ``scene`` trained with ``contraction`` (see the module
     docstring): for a bounded capture of pinhole cameras that look at one point, the larger of the
     scene's own near and :data:`FOCUS_NEAR_SHARE` of the cameras' median distance to it; else the
     scene's (a fisheye's wide view may hold content closer to its camera)."""
-    if scene.source == "nerf-synthetic" or contraction is not None or scene.train.fisheye:
+    if not bounded_capture(scene, contraction) or scene.train.fisheye:
         return scene.near
     focus = focus_distance(scene.train.c2w)
     return scene.near if focus is None else max(scene.near, round(FOCUS_NEAR_SHARE * focus, 6))
@@ -233,8 +239,7 @@ def occupancy_threshold(scene: Scene) -> float:
 
 def distortion_weight(scene: Scene, contraction: str | None) -> float:
     """The distortion loss's weight for ``scene`` (see the module docstring)."""
-    bounded_capture = scene.source != "nerf-synthetic" and contraction is None
-    return CAPTURE_DISTORTION_WEIGHT if bounded_capture else 0.0
+    return CAPTURE_DISTORTION_WEIGHT if bounded_capture(scene, contraction) else 0.0
 
 
 def appearance_dim(scene: Scene) -> int:
