@@ -109,6 +109,37 @@ def test_chunks_do_not_change_the_image(trainer, chunk):
         torch.testing.assert_close(chunked[key], whole[key], rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("chunk", [None, 4096])
+def test_a_chunk_that_marches_too_many_samples_is_rendered_in_halves(trainer, monkeypatch, chunk):
+    """A barely trained field marches far more samples per ray than the chunk size guessed (a
+    2 s lego run: 166M samples in one chunk, past one hash-grid call): with a sample budget of
+    64, every chunk of more than a few rays is marched again as halves, and the image is the same."""
+    import ngp_warp.outputs.renderer as renderer
+
+    c2w, intr = camera(trainer)
+    model = trainer.model
+    model.view_samples_per_ray = None
+    whole = render_view(model, c2w, intr, W, H, first_round=None)
+    assert whole["n_marched"] > 8 * renderer.MAX_MARCHED_SHARE * 64  # the budget below splits it
+    marched = []
+    real_march = renderer.ray_marching
+
+    def counting_march(*args, **kwargs):
+        samples = real_march(*args, **kwargs)
+        marched.append((args[0].shape[0], samples.n_samples))
+        return samples
+
+    monkeypatch.setattr(renderer, "sample_budget", lambda device: 64)
+    monkeypatch.setattr(renderer, "ray_marching", counting_march)
+    split = render_view(model, c2w, intr, W, H, chunk=chunk, first_round=None)
+    for key in ("rgb", "depth", "opacity"):
+        torch.testing.assert_close(split[key], whole[key], rtol=0, atol=1e-6)
+    assert split["n_marched"] == whole["n_marched"] and split["n_shaded"] == whole["n_shaded"]
+    kept = [n for rays, n in marched if rays == 1 or n <= renderer.MAX_MARCHED_SHARE * 64]
+    assert marched[0][0] == W * H and len(kept) < len(marched)  # the first chunk was too large
+    assert sum(kept) == whole["n_marched"]  # the chunks rendered cover every ray once
+
+
 @pytest.mark.parametrize("fisheye", [False, True])
 def test_lenses_render_their_own_rays(trainer, fisheye):
     c2w, intr = camera(trainer)

@@ -40,9 +40,10 @@ from ngp_warp.ops.raymarch import RaySamples, ray_marching
 
 BYTES_PER_SAMPLE = 512  # device memory one marched sample needs through march, density and pruning
 CPU_SAMPLE_BUDGET = 1 << 21  # marched samples per chunk on the CPU (a few hundred MB)
-CUDA_SAMPLE_CAP = 1 << 25  # marched samples per chunk on CUDA at most (16 GiB), so a first chunk that
-                            # marches 4x its guess still fits one hash-grid call (2^31 int32 items)
+CUDA_SAMPLE_CAP = 1 << 25  # marched samples per chunk on CUDA at most (16 GiB)
 MIN_CHUNK = 1 << 12  # rays
+MAX_MARCHED_SHARE = 2  # a chunk that marches more than this × the sample budget is split: at the CUDA
+                       # cap, 2^26 samples × 16 levels still fit one hash-grid call (2^31 int32 items)
 
 
 class ChunkSizer:
@@ -159,17 +160,21 @@ def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
 
 
 def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor,
-                  stratified: bool, codes: list[torch.Tensor | None], first_round: int | None) -> dict:
+                  stratified: bool, codes: list[torch.Tensor | None], first_round: int | None,
+                  max_marched: int) -> dict:
     """One chunk of N rays (see the module): march, σ and h of the marched samples (:func:`_geometry`),
     prune, then for each of the K ``codes`` (resolved [A] codes, or [None] without appearance
     codes) the colour MLP on the kept samples' h and the composite over ``bg`` [3] or [N, 3].
 
     Returns ``rgb`` [K, N, 3], ``opacity`` [N], ``depth`` [N] float32 and host ints
     ``n_marched``, ``n_encoded`` (through the density MLP), ``n_shaded`` (through the colour MLP,
-    per code).
+    per code); only ``n_marched`` when more than one ray marched more than ``max_marched``
+    samples (the caller renders fewer rays at a time).
     """
     field, eps, n_rays = model.field, model.early_stop_eps, rays_o.shape[0]
     samples = ray_marching(rays_o, rays_d, model.grid, model.march_options(stratified), validate=False)
+    if samples.n_samples > max_marched and n_rays > 1:
+        return {"n_marched": samples.n_samples}
     out = {"rgb": bg.expand(len(codes), n_rays, 3).clone(), "opacity": torch.zeros(n_rays, device=rays_o.device),
            "depth": torch.zeros(n_rays, device=rays_o.device), "n_marched": samples.n_samples, "n_encoded": 0,
            "n_shaded": 0}
@@ -197,24 +202,32 @@ def _render_rays(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tenso
     """Rays [R, 3] rendered ``spp`` times in chunks of ``chunk_size(remaining rays)`` rays
     (:func:`_render_chunk`, coloured with each of the K ``codes``) → rgb [K, R, 3], depth [R],
     opacity [R] summed over the ``spp`` renders, and the host counts summed likewise; ``sizer``
-    (when given) observes every chunk."""
+    (when given) observes every chunk. A chunk whose rays march more samples than
+    :data:`MAX_MARCHED_SHARE` × the device's :func:`sample_budget` (a first guess far below a
+    barely trained field's samples per ray) is marched again as its first half, and no later
+    chunk holds more rays than that half."""
     total, dev = rays_o.shape[0], rays_o.device
     rgb, depth = torch.zeros(len(codes), total, 3, device=dev), torch.zeros(total, device=dev)
     opacity = torch.zeros(total, device=dev)
     counts = {"n_marched": 0, "n_encoded": 0, "n_shaded": 0}
+    max_marched, most_rays = MAX_MARCHED_SHARE * (sizer.sample_budget if sizer else sample_budget(dev)), total
     for _ in range(spp):
         lo = 0
         while lo < total:
-            hi = min(total, lo + chunk_size(total - lo))
+            hi = min(total, lo + chunk_size(total - lo), lo + most_rays)
             chunk_bg = model.field.background(rays_d[lo:hi]) if bg is None else bg
-            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, codes, first_round)
+            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, codes, first_round,
+                                max_marched)
+            if sizer is not None:
+                sizer.observe(hi - lo, out["n_marched"])
+            if "rgb" not in out:  # too many samples for one chunk: half as many rays
+                most_rays = (hi - lo) // 2
+                continue
             rgb[:, lo:hi] += out["rgb"]
             depth[lo:hi] += out["depth"]
             opacity[lo:hi] += out["opacity"]
             for key in counts:
                 counts[key] += out[key]
-            if sizer is not None:
-                sizer.observe(hi - lo, out["n_marched"])
             lo = hi
     return rgb, depth, opacity, counts
 
