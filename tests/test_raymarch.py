@@ -200,6 +200,29 @@ def test_capacity_pads_or_cuts_without_reading_the_count(monkeypatch, cone_angle
         ray_marching(rays_o, rays_d, grid, march, capacity=0)
 
 
+def test_a_launch_of_many_rays_marches_fewer_segments_each(monkeypatch):
+    """``most_threads`` bounds rays × segments (a whole view's rays need no segments to fill the
+    GPU, a training step's few rays do) and leaves the samples as they are."""
+    grid = random_grid(2)
+    args = (grid, 0.0, 1e10, 0.0173, 0.0, 1e10)
+    unbounded, bounded = raymarch.MarchSchedule(7, 40), raymarch.MarchSchedule(7, 40, 1000)
+    assert raymarch._segments(bounded, *args, 10) == raymarch._segments(unbounded, *args, 10)  # 10 × 40 ≤ 1000
+    n_seg, seg_steps = raymarch._segments(bounded, *args, 300)
+    all_steps = raymarch._segments(raymarch.MarchSchedule(10**9, 1), *args, 300)[1]
+    assert n_seg == 3 and seg_steps == -(-all_steps // 3)
+    assert raymarch._segments(bounded, *args, 5000) == (1, all_steps)  # never under one segment per ray
+    rays_o, rays_d = random_rays(240, 2)
+    split = raymarch.MarchSchedule(7, 40, 3 * rays_o.shape[0])
+    assert raymarch._segments(split, *args, rays_o.shape[0])[0] == 3
+    results = []
+    for schedule in (raymarch.MarchSchedule(10**9, 1), split):
+        monkeypatch.setitem(raymarch.SCHEDULES, "cpu", schedule)
+        results.append(ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.0173)))
+    assert results[0].n_samples > 1000
+    for name in ("ray_offsets", "ray_indices", "t_starts", "t_ends", "positions"):
+        assert torch.equal(getattr(results[0], name), getattr(results[1], name)), name
+
+
 @pytest.mark.parametrize("levels", [1, 3])
 @pytest.mark.parametrize("cone", [{}, {"cone_angle": 1 / 64, "max_step": 0.12}])
 def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels, cone):
@@ -219,7 +242,7 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels, cone):
         for schedule in (raymarch.MarchSchedule(10**9, 1), raymarch.MarchSchedule(7, 40), raymarch.MarchSchedule(40, 40)):
             monkeypatch.setitem(raymarch.SCHEDULES, "cpu", schedule)
             n_seg, seg_steps = raymarch._segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"],
-                                                  kw.get("cone_angle", 0.0), kw.get("max_step", 1e10))
+                                                  kw.get("cone_angle", 0.0), kw.get("max_step", 1e10), 200)
             assert (n_seg, seg_steps > 64) == (1, True) or (n_seg > 1 and seg_steps <= 64)  # masks in the split runs
             torch.manual_seed(3)
             results.append(ray_marching(rays_o, rays_d, grid, MarchOptions(**kw)))

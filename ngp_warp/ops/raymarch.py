@@ -26,8 +26,10 @@ world space; the field contracts them.
 Samples are produced by count → prefix sum → fill; the only host synchronisation reads the
 total sample count to size the outputs. Several threads march one ray, each over a segment of
 its steps (:class:`MarchSchedule`; cone steps too, whose t_k has a closed form in k); the samples
-do not depend on the split. Segments of at most 64 steps record their kept steps as a bit mask in the count, from
-which the fill writes the samples without marching again.
+do not depend on the split, but for a step whose midpoint lies within float rounding of an
+occupied cell's face, which may fall either side (one ray in 10^4 of a 100 × 100 demo view).
+Segments of at most 64 steps record their kept steps as a bit mask in the count, from which the
+fill writes the samples without marching again.
 """
 
 from __future__ import annotations
@@ -53,15 +55,19 @@ _NO_CAP = 2**31 - 1
 @dataclass(frozen=True)
 class MarchSchedule:
     """Threads per ray for fixed steps: a ray's steps are split into segments of at least
-    ``segment_steps`` steps, at most ``max_segments`` of them per ray."""
+    ``segment_steps`` steps, at most ``max_segments`` of them per ray, and with ``most_threads``
+    (None: no such bound) no more segments than keep the threads of one launch within it (at
+    least one segment per ray)."""
 
     segment_steps: int
     max_segments: int
+    most_threads: int | None = None
 
 
-# The GPU needs many short segments to fill its threads; on the CPU each segment costs a ray
-# setup while the rays alone already keep every core busy.
-SCHEDULES = {"cpu": MarchSchedule(512, 8), "cuda": MarchSchedule(32, 128)}
+# The GPU needs many short segments to fill its threads when a launch marches few rays (a
+# training step's); a view's hundreds of thousands of rays fill it with a few segments each, and
+# every segment costs a ray setup. On the CPU the rays alone already keep every core busy.
+SCHEDULES = {"cpu": MarchSchedule(512, 8), "cuda": MarchSchedule(32, 128, 1 << 22)}
 
 
 def steps_over(t_a: float, t_b: float, step: float, cone_angle: float, max_step: float) -> float:
@@ -79,17 +85,19 @@ def steps_over(t_a: float, t_b: float, step: float, cone_angle: float, max_step:
 
 
 def _segments(schedule: MarchSchedule, grid: OccupancyGrid, near: float, far: float, step: float,
-              cone_angle: float, max_step: float) -> tuple[int, int]:
-    """(segments per ray, steps per segment). A ray inside the coarsest cascade box spans at most
-    min(far − near, box diagonal) when |d| = 1, and takes the most steps when that span starts at
-    near (steps only grow with t): :func:`steps_over` + 1 (the last segment takes any remainder).
-    Contracted grids are marched by one thread per ray."""
+              cone_angle: float, max_step: float, n_rays: int) -> tuple[int, int]:
+    """(segments per ray, steps per segment) for a launch of ``n_rays`` rays. A ray inside the
+    coarsest cascade box spans at most min(far − near, box diagonal) when |d| = 1, and takes the
+    most steps when that span starts at near (steps only grow with t): :func:`steps_over` + 1
+    (the last segment takes any remainder). Contracted grids are marched by one thread per ray."""
     if grid.contraction is not None:
         return 1, _NO_CAP
     lo, hi = grid.aabb_host[:3], grid.aabb_host[3:]
     diagonal = math.dist(lo, hi) * 2 ** (grid.levels - 1)
     steps = steps_over(near, near + min(far - near, diagonal), step, cone_angle, max_step) + 1
     n_seg = int(min(max(steps / schedule.segment_steps, 1), schedule.max_segments))
+    if schedule.most_threads is not None:
+        n_seg = max(1, min(n_seg, schedule.most_threads // max(n_rays, 1)))
     return n_seg, math.ceil(steps / n_seg)
 
 
@@ -312,7 +320,7 @@ def ray_marching(
     n_rays = rays_o.shape[0]
     device = _wp.device_of(rays_o)
     n_seg, seg_steps = _segments(SCHEDULES["cpu" if device == "cpu" else "cuda"], grid, near, far, step, cone_angle,
-                                 max_step)
+                                 max_step, n_rays)
     config = _march_config(grid.resolution, grid.levels, grid.n_mips, grid.mip_cells, near, far, step,
                            cone_angle, max_step, cap, int(march.stratified), n_seg, seg_steps, *_contraction(grid))
     seed = host_seed() if march.stratified else 0

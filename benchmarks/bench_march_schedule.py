@@ -1,0 +1,106 @@
+"""Threads per ray of the march on whole views: the same rays marched with several segment
+schedules (:class:`ngp_warp.ops.raymarch.MarchSchedule`), timed alone and inside a view's render.
+
+    python benchmarks/bench_march_schedule.py RUN --device cuda [--views 20]
+        [--schedules 32:128 32:128:4194304 64:128 1000000000:1]
+
+A schedule is ``SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS]``. For each, over the first ``--views``
+test views of the run (all sub-pixel rays of a view in one launch, as the evaluation marches
+them): the segments per ray and threads per launch, ms per march (its count and fill, the device
+synchronised), ms per rendered view (:meth:`Trainer.render_image`, as the evaluation renders it),
+and the rays whose samples differ from the first schedule's (a step whose midpoint lies within
+float rounding of an occupied cell's face may fall either side). Prints one table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+from ngp_warp.data.cameras import view_rays
+from ngp_warp.ops import raymarch
+from ngp_warp.outputs.renderer import subpixel_offsets
+from ngp_warp.training.checkpoint import load_trainer
+
+
+def schedule(text: str) -> raymarch.MarchSchedule:
+    parts = [int(v) for v in text.split(":")]
+    if len(parts) not in (2, 3) or min(parts) < 1:
+        raise argparse.ArgumentTypeError(f"expected SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS], got {text!r}")
+    return raymarch.MarchSchedule(*parts)
+
+
+def views_rays(trainer, views: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Each of the first ``views`` test views' rays [R, 3] (origins, directions), every sub-pixel."""
+    split, rays = trainer.scene.test, []
+    for i in range(min(views, len(split.names))):
+        cam = split.camera(i)
+        parts = [view_rays(cam["c2w"], cam["intrinsics"], cam["distortion"], cam["width"], cam["height"],
+                           trainer.device, cam["fisheye"], shift)
+                 for shift in subpixel_offsets(trainer.config.supersample)]
+        rays.append(tuple(torch.cat(r) for r in zip(*parts)))
+    return rays
+
+
+def rays_that_differ(a: raymarch.RaySamples, b: raymarch.RaySamples) -> int:
+    """Rays whose samples differ between two marches of the same rays: in count, or (for rays of
+    equal counts) in any sample's t_start."""
+    counts_a, counts_b = torch.diff(a.ray_offsets), torch.diff(b.ray_offsets)
+    differ = counts_a != counts_b
+    if not differ.any():
+        differ[a.ray_indices[a.t_starts != b.t_starts]] = True
+    return int(differ.sum())
+
+
+def timed(sync, work) -> float:
+    sync()
+    start = time.perf_counter()
+    work()
+    sync()
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--views", type=int, default=20)
+    ap.add_argument("--schedules", type=schedule, nargs="+",
+                    default=[schedule(s) for s in ("32:128", "32:128:4194304", "64:128", "1000000000:1")])
+    args = ap.parse_args()
+    trainer, _ = load_trainer(args.run / "checkpoint.pt", device=args.device)
+    kind = "cpu" if trainer.device.type == "cpu" else "cuda"
+    sync = torch.cuda.synchronize if kind == "cuda" else (lambda: None)
+    model, split = trainer.model, trainer.scene.test
+    rays = views_rays(trainer, args.views)
+    step, max_step, _ = raymarch._march_steps(model.march, model.grid)
+    march = model.march
+    first, rows = None, []
+    for sched in args.schedules:
+        raymarch.SCHEDULES[kind] = sched
+        n_seg, seg_steps = raymarch._segments(sched, model.grid, march.near, march.far, step, march.cone_angle,
+                                              max_step, rays[0][0].shape[0])
+        marched = [raymarch.ray_marching(o, d, model.grid, march, validate=False) for o, d in rays]  # warm-up too
+        differ = 0 if first is None else sum(rays_that_differ(a, b) for a, b in zip(first, marched))
+        first = marched if first is None else first
+        del marched
+        march_s = timed(sync, lambda: [raymarch.ray_marching(o, d, model.grid, march, validate=False) for o, d in rays])
+        cameras = [split.camera(i) for i in range(len(rays))]
+        trainer.render_image(**cameras[0], background=trainer.view_background)
+        render_s = timed(sync, lambda: [trainer.render_image(**c, background=trainer.view_background) for c in cameras])
+        rows.append((sched, n_seg, seg_steps, n_seg * rays[0][0].shape[0], 1e3 * march_s / len(rays),
+                     1e3 * render_s / len(rays), differ))
+    print(f"{len(rays)} test views of {args.run} at {split.width}×{split.height}, {trainer.config.supersample}² rays a "
+          f"pixel ({rays[0][0].shape[0]} rays a view), device {trainer.device}")
+    print("| schedule | segments per ray | steps per segment | threads per launch | ms per march | ms per view | "
+          "rays whose samples differ |\n|---|---:|---:|---:|---:|---:|---:|")
+    for sched, n_seg, seg_steps, threads, march_ms, render_ms, differ in rows:
+        spec = f"{sched.segment_steps}:{sched.max_segments}" + (f":{sched.most_threads}" if sched.most_threads else "")
+        print(f"| {spec} | {n_seg} | {seg_steps} | {threads} | {march_ms:.2f} | {render_ms:.2f} | {differ} |")
+
+
+if __name__ == "__main__":
+    main()
