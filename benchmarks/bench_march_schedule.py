@@ -8,8 +8,9 @@ A schedule is ``SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS]``. For each, over the 
 test views of the run (all sub-pixel rays of a view in one launch, as the evaluation marches
 them): the segments per ray and threads per launch, ms per march (its count and fill, the device
 synchronised), ms per rendered view (:meth:`Trainer.render_image`, as the evaluation renders it),
-and the rays whose samples differ from the first schedule's (a step whose midpoint lies within
-float rounding of an occupied cell's face may fall either side). Prints one table.
+and the rays of the first view whose samples differ from the first schedule's (a step whose
+midpoint lies within float rounding of an occupied cell's face may fall either side). Prints one
+table.
 """
 
 from __future__ import annotations
@@ -45,14 +46,20 @@ def views_rays(trainer, views: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
     return rays
 
 
-def rays_that_differ(a: raymarch.RaySamples, b: raymarch.RaySamples) -> int:
-    """Rays whose samples differ between two marches of the same rays: in count, or (for rays of
-    equal counts) in any sample's t_start."""
-    counts_a, counts_b = torch.diff(a.ray_offsets), torch.diff(b.ray_offsets)
+def rays_that_differ(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> int:
+    """Rays whose samples differ between two marches of the same rays, each given as (ray_offsets,
+    ray_indices, t_starts): in count, or (for rays of equal counts) in any sample's t_start."""
+    counts_a, counts_b = torch.diff(a[0]), torch.diff(b[0])
     differ = counts_a != counts_b
     if not differ.any():
-        differ[a.ray_indices[a.t_starts != b.t_starts]] = True
+        differ[a[1][a[2] != b[2]]] = True
     return int(differ.sum())
+
+
+def march_views(model, rays) -> None:
+    """March every view's rays, each view's samples freed before the next is marched."""
+    for rays_o, rays_d in rays:
+        raymarch.ray_marching(rays_o, rays_d, model.grid, model.march, validate=False)
 
 
 def timed(sync, work) -> float:
@@ -78,16 +85,18 @@ def main() -> None:
     rays = views_rays(trainer, args.views)
     step, max_step, _ = raymarch._march_steps(model.march, model.grid)
     march = model.march
-    first, rows = None, []
+    first, rows = None, []  # first: the first schedule's samples of the first view, on the host
     for sched in args.schedules:
         raymarch.SCHEDULES[kind] = sched
         n_seg, seg_steps = raymarch._segments(sched, model.grid, march.near, march.far, step, march.cone_angle,
                                               max_step, rays[0][0].shape[0])
-        marched = [raymarch.ray_marching(o, d, model.grid, march, validate=False) for o, d in rays]  # warm-up too
-        differ = 0 if first is None else sum(rays_that_differ(a, b) for a, b in zip(first, marched))
-        first = marched if first is None else first
-        del marched
-        march_s = timed(sync, lambda: [raymarch.ray_marching(o, d, model.grid, march, validate=False) for o, d in rays])
+        view = raymarch.ray_marching(*rays[0], model.grid, march, validate=False)  # and the warm-up
+        view = (view.ray_offsets.cpu(), view.ray_indices.cpu(), view.t_starts.cpu())
+        differ = 0 if first is None else rays_that_differ(first, view)
+        first = view if first is None else first
+        march_s = timed(sync, lambda: march_views(model, rays))
+        if kind == "cuda":
+            torch.cuda.empty_cache()  # the renders size their chunks to the free memory
         cameras = [split.camera(i) for i in range(len(rays))]
         trainer.render_image(**cameras[0], background=trainer.view_background)
         render_s = timed(sync, lambda: [trainer.render_image(**c, background=trainer.view_background) for c in cameras])
@@ -96,7 +105,7 @@ def main() -> None:
     print(f"{len(rays)} test views of {args.run} at {split.width}×{split.height}, {trainer.config.supersample}² rays a "
           f"pixel ({rays[0][0].shape[0]} rays a view), device {trainer.device}")
     print("| schedule | segments per ray | steps per segment | threads per launch | ms per march | ms per view | "
-          "rays whose samples differ |\n|---|---:|---:|---:|---:|---:|---:|")
+          "rays of the first view whose samples differ |\n|---|---:|---:|---:|---:|---:|---:|")
     for sched, n_seg, seg_steps, threads, march_ms, render_ms, differ in rows:
         spec = f"{sched.segment_steps}:{sched.max_segments}" + (f":{sched.most_threads}" if sched.most_threads else "")
         print(f"| {spec} | {n_seg} | {seg_steps} | {threads} | {march_ms:.2f} | {render_ms:.2f} | {differ} |")

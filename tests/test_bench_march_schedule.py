@@ -1,0 +1,35 @@
+"""benchmarks/bench_march_schedule.py's schedule parsing and its count of rays whose samples differ."""
+
+import argparse
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+from ngp_warp.ops.raymarch import MarchSchedule
+
+_spec = importlib.util.spec_from_file_location("bench_march_schedule",
+                                               Path(__file__).parents[1] / "benchmarks" / "bench_march_schedule.py")
+bench = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bench)
+
+
+def test_schedules_parse_with_and_without_a_thread_bound():
+    assert bench.schedule("32:128") == MarchSchedule(32, 128)
+    assert bench.schedule("32:128:4194304") == MarchSchedule(32, 128, 4194304)
+    for bad in ("32", "32:0", "1:2:3:4"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            bench.schedule(bad)
+
+
+def test_rays_that_differ_count_samples_and_their_distances():
+    offsets = torch.tensor([0, 2, 3, 5])  # three rays of 2, 1 and 2 samples
+    rays = torch.tensor([0, 0, 1, 2, 2])
+    t = torch.tensor([0.1, 0.2, 0.5, 0.3, 0.4])
+    assert bench.rays_that_differ((offsets, rays, t), (offsets, rays, t.clone())) == 0
+    moved = t.clone()
+    moved[3] += 1e-6  # ray 2's first sample
+    assert bench.rays_that_differ((offsets, rays, t), (offsets, rays, moved)) == 1
+    one_more = torch.tensor([0, 2, 4, 6])  # ray 1 has a sample more
+    assert bench.rays_that_differ((offsets, rays, t), (one_more, None, None)) == 1
