@@ -76,6 +76,22 @@ def test_ssim_matches_direct_summation(seed):
     assert ssim(y, x) == pytest.approx(want, abs=1e-10)
 
 
+def test_the_banded_blur_equals_the_convolutions():
+    """SSIM's blur on CUDA (products with banded matrices) and elsewhere (convolutions) agree."""
+    from ngp_warp.outputs.metrics import _blur
+
+    images = torch.rand(5, 17, 26, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    banded, convolved = _blur(images, banded=True), _blur(images, banded=False)
+    assert banded.shape == (5, 7, 16)
+    torch.testing.assert_close(banded, convolved, rtol=0, atol=1e-14)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_ssim_on_cuda_equals_the_cpu():
+    x, y = _images(h=40, w=53, seed=5)
+    assert ssim(x.cuda(), y.cuda()) == pytest.approx(ssim(x, y), abs=1e-12)
+
+
 def test_ssim_matches_scipy_gaussian_filter_formulation():
     """skimage's formulation (scipy.ndimage Gaussian, truncate 3.5, borders cropped by 5)."""
     ndimage = pytest.importorskip("scipy.ndimage")
