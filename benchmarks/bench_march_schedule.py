@@ -27,6 +27,12 @@ from ngp_warp.outputs.renderer import subpixel_offsets
 from ngp_warp.training.checkpoint import load_trainer
 
 
+def positive_int(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return int(text)
+
+
 def schedule(text: str) -> raymarch.MarchSchedule:
     parts = [int(v) for v in text.split(":")]
     if len(parts) not in (2, 3) or min(parts) < 1:
@@ -47,12 +53,14 @@ def views_rays(trainer, views: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
 
 
 def rays_that_differ(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> int:
-    """Rays whose samples differ between two marches of the same rays, each given as (ray_offsets,
-    ray_indices, t_starts): in count, or (for rays of equal counts) in any sample's t_start."""
-    counts_a, counts_b = torch.diff(a[0]), torch.diff(b[0])
-    differ = counts_a != counts_b
-    if not differ.any():
-        differ[a[1][a[2] != b[2]]] = True
+    """Rays whose samples differ between two marches of the same rays, each given as (ray_offsets
+    [R + 1], ray_indices [S], t_starts [S]): in count, or (rays of equal counts) in any t_start."""
+    (offsets_a, rays_a, t_a), (offsets_b, _, t_b) = a, b
+    differ = torch.diff(offsets_a) != torch.diff(offsets_b)
+    rows_a = (~differ[rays_a]).nonzero().squeeze(1)  # the samples of a's rays of equal counts
+    ray = rays_a[rows_a]
+    rows_b = offsets_b[ray].long() + rows_a - offsets_a[ray].long()  # the same sample of the same ray in b
+    differ[ray[t_a[rows_a] != t_b[rows_b]]] = True
     return int(differ.sum())
 
 
@@ -74,7 +82,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", type=Path)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--views", type=int, default=20)
+    ap.add_argument("--views", type=positive_int, default=20)
     ap.add_argument("--schedules", type=schedule, nargs="+",
                     default=[schedule(s) for s in ("32:128", "32:128:4194304", "64:128", "1000000000:1")])
     args = ap.parse_args()

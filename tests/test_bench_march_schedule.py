@@ -31,5 +31,7 @@ def test_rays_that_differ_count_samples_and_their_distances():
     moved = t.clone()
     moved[3] += 1e-6  # ray 2's first sample
     assert bench.rays_that_differ((offsets, rays, t), (offsets, rays, moved)) == 1
-    one_more = torch.tensor([0, 2, 4, 6])  # ray 1 has a sample more
-    assert bench.rays_that_differ((offsets, rays, t), (one_more, None, None)) == 1
+    one_more = (torch.tensor([0, 2, 4, 6]), torch.tensor([0, 0, 1, 1, 2, 2]), torch.tensor([0.1, 0.2, 0.5, 0.6, 0.3, 0.4]))
+    assert bench.rays_that_differ((offsets, rays, t), one_more) == 1  # ray 1 has a sample more
+    both = (one_more[0], one_more[1], torch.tensor([0.1, 0.2, 0.5, 0.6, 0.3, 0.45]))
+    assert bench.rays_that_differ((offsets, rays, t), both) == 2  # and ray 2, behind it, a sample moved

@@ -76,14 +76,14 @@ def test_ssim_matches_direct_summation(seed):
     assert ssim(y, x) == pytest.approx(want, abs=1e-10)
 
 
-def test_the_banded_blur_equals_the_convolutions():
-    """SSIM's blur on CUDA (products with banded matrices) and elsewhere (convolutions) agree."""
+def test_the_shifted_blur_equals_the_convolutions():
+    """SSIM's blur on CUDA (the window's weighted shifts summed) and elsewhere (convolutions) agree."""
     from ngp_warp.outputs.metrics import _blur
 
     images = torch.rand(5, 17, 26, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
-    banded, convolved = _blur(images, banded=True), _blur(images, banded=False)
-    assert banded.shape == (5, 7, 16)
-    torch.testing.assert_close(banded, convolved, rtol=0, atol=1e-14)
+    shifted, convolved = _blur(images, shifted=True), _blur(images, shifted=False)
+    assert shifted.shape == (5, 7, 16)
+    torch.testing.assert_close(shifted, convolved, rtol=0, atol=1e-14)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -135,9 +135,11 @@ def test_a_chunk_that_marches_too_many_samples_is_rendered_in_halves(trainer, mo
     for key in ("rgb", "depth", "opacity"):
         torch.testing.assert_close(split[key], whole[key], rtol=0, atol=1e-6)
     assert split["n_marched"] == whole["n_marched"] and split["n_shaded"] == whole["n_shaded"]
-    kept = [n for rays, n in marched if rays == 1 or n <= renderer.MAX_MARCHED_SHARE * 64]
+    cap = renderer.MAX_MARCHED_SHARE * 64
+    kept = [n for rays, n in marched if rays == 1 or n <= cap]
     assert marched[0][0] == W * H and len(kept) < len(marched)  # the first chunk was too large
     assert sum(kept) == whole["n_marched"]  # the chunks rendered cover every ray once
+    assert all(n == cap + 1 for rays, n in marched if rays > 1 and n > cap)  # a dropped march stops counting
 
 
 @pytest.mark.parametrize("fisheye", [False, True])

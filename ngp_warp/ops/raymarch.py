@@ -26,8 +26,9 @@ world space; the field contracts them.
 Samples are produced by count → prefix sum → fill; the only host synchronisation reads the
 total sample count to size the outputs. Several threads march one ray, each over a segment of
 its steps (:class:`MarchSchedule`; cone steps too, whose t_k has a closed form in k); the samples
-do not depend on the split, but for a step whose midpoint lies within float rounding of an
-occupied cell's face, which may fall either side (one ray in 10^4 of a 100 × 100 demo view).
+do not depend on the split, but for a step whose midpoint lies within float rounding of the face
+of a cell or of an empty block the march skips, which may fall either side (8–17 rays of 25.6
+million in 40 of lego's views, one sample each).
 Segments of at most 64 steps record their kept steps as a bit mask in the count, from which the
 fill writes the samples without marching again.
 """

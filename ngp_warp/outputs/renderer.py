@@ -26,6 +26,7 @@ What makes it fast, next to a training render of the same rays:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -43,7 +44,8 @@ CPU_SAMPLE_BUDGET = 1 << 21  # marched samples per chunk on the CPU (a few hundr
 CUDA_SAMPLE_CAP = 1 << 25  # marched samples per chunk on CUDA at most (16 GiB)
 MIN_CHUNK = 1 << 12  # rays
 MAX_MARCHED_SHARE = 2  # a chunk that marches more than this × the sample budget is split: at the CUDA
-                       # cap, 2^26 samples × 16 levels still fit one hash-grid call (2^31 int32 items)
+                       # cap, 2^26 samples × a field's 16 levels (the default) still fit one hash-grid
+                       # call (2^31 int32 items)
 
 
 class ChunkSizer:
@@ -159,22 +161,29 @@ def _geometry(field, samples: RaySamples, eps: float, first_round: int | None):
     return sigma, h, rows.numel() + rest.numel()
 
 
-def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor,
+def _render_chunk(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tensor, bg: torch.Tensor | None,
                   stratified: bool, codes: list[torch.Tensor | None], first_round: int | None,
                   max_marched: int) -> dict:
     """One chunk of N rays (see the module): march, σ and h of the marched samples (:func:`_geometry`),
     prune, then for each of the K ``codes`` (resolved [A] codes, or [None] without appearance
-    codes) the colour MLP on the kept samples' h and the composite over ``bg`` [3] or [N, 3].
+    codes) the colour MLP on the kept samples' h and the composite over ``bg`` [3] (None: the
+    field's environment along each ray).
 
     Returns ``rgb`` [K, N, 3], ``opacity`` [N], ``depth`` [N] float32 and host ints
     ``n_marched``, ``n_encoded`` (through the density MLP), ``n_shaded`` (through the colour MLP,
-    per code); only ``n_marched`` when more than one ray marched more than ``max_marched``
-    samples (the caller renders fewer rays at a time).
+    per code); only ``n_marched`` (then ``max_marched`` + 1: the march stops counting there)
+    when the chunk holds more than one ray and marched more than ``max_marched`` samples (the
+    caller renders fewer rays at a time).
     """
     field, eps, n_rays = model.field, model.early_stop_eps, rays_o.shape[0]
-    samples = ray_marching(rays_o, rays_d, model.grid, model.march_options(stratified), validate=False)
+    march = model.march_options(stratified)
+    if n_rays > 1:  # the count past max_marched only tells that the chunk is dropped: no room for it
+        cut = max_marched + 1 if march.max_samples is None else min(march.max_samples, max_marched + 1)
+        march = dataclasses.replace(march, max_samples=cut)
+    samples = ray_marching(rays_o, rays_d, model.grid, march, validate=False)
     if samples.n_samples > max_marched and n_rays > 1:
         return {"n_marched": samples.n_samples}
+    bg = field.background(rays_d) if bg is None else bg
     out = {"rgb": bg.expand(len(codes), n_rays, 3).clone(), "opacity": torch.zeros(n_rays, device=rays_o.device),
            "depth": torch.zeros(n_rays, device=rays_o.device), "n_marched": samples.n_samples, "n_encoded": 0,
            "n_shaded": 0}
@@ -204,8 +213,8 @@ def _render_rays(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tenso
     opacity [R] summed over the ``spp`` renders, and the host counts summed likewise; ``sizer``
     (when given) observes every chunk. A chunk whose rays march more samples than
     :data:`MAX_MARCHED_SHARE` × the device's :func:`sample_budget` (a first guess far below a
-    barely trained field's samples per ray) is marched again as its first half, and no later
-    chunk holds more rays than that half."""
+    barely trained field's samples per ray) is dropped, and no later chunk holds more than half
+    its rays (with a sizer, usually fewer)."""
     total, dev = rays_o.shape[0], rays_o.device
     rgb, depth = torch.zeros(len(codes), total, 3, device=dev), torch.zeros(total, device=dev)
     opacity = torch.zeros(total, device=dev)
@@ -215,9 +224,7 @@ def _render_rays(model: RadianceModel, rays_o: torch.Tensor, rays_d: torch.Tenso
         lo = 0
         while lo < total:
             hi = min(total, lo + chunk_size(total - lo), lo + most_rays)
-            chunk_bg = model.field.background(rays_d[lo:hi]) if bg is None else bg
-            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], chunk_bg, spp > 1, codes, first_round,
-                                max_marched)
+            out = _render_chunk(model, rays_o[lo:hi], rays_d[lo:hi], bg, spp > 1, codes, first_round, max_marched)
             if sizer is not None:
                 sizer.observe(hi - lo, out["n_marched"])
             if "rgb" not in out:  # too many samples for one chunk: half as many rays
