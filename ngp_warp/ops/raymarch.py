@@ -346,9 +346,19 @@ def ray_marching(
                                   _ray_flags(rays_o, rays_d, unit_directions) if validate else None)
     elif before_sync is not None:
         before_sync()
-    n_samples = n_samples if capacity is None else capacity
-    ray_indices = _empty_or_full(n_samples, torch.int64, n_rays, capacity is not None, dev)
-    floats = _empty_or_full(8 * n_samples, torch.float32, 0, capacity is not None, dev)  # contiguous parts
+    return _fill(n_samples if capacity is None else capacity, n_rays, n_items, capacity is not None, common,
+                 seg_offsets, offsets, masks, device)
+
+
+def _fill(n_samples: int, n_rays: int, n_items: int, padded: bool, common: list, seg_offsets: torch.Tensor,
+          offsets: torch.Tensor, masks: torch.Tensor | None, device: str) -> RaySamples:
+    """The march's fill pass: ``n_samples`` output rows (``padded``: a capacity's, initialised as
+    padding) written by the ``n_items`` (ray, segment) threads from the count pass's
+    ``seg_offsets`` [n_items + 1] int32 and step ``masks`` [n_items] int64 (or None); the rays'
+    ``offsets`` [n_rays + 1] int32 are written too (zeros when nothing was marched)."""
+    dev = offsets.device
+    ray_indices = _empty_or_full(n_samples, torch.int64, n_rays, padded, dev)
+    floats = _empty_or_full(8 * n_samples, torch.float32, 0, padded, dev)  # contiguous parts
     t_starts, t_ends = floats[:n_samples], floats[n_samples : 2 * n_samples]
     positions = floats[2 * n_samples : 5 * n_samples].view(n_samples, 3)
     directions = floats[5 * n_samples :].view(n_samples, 3)
