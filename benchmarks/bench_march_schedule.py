@@ -21,16 +21,10 @@ from pathlib import Path
 
 import torch
 
-from ngp_warp.data.cameras import view_rays
+from ngp_warp.cli.common import positive
 from ngp_warp.ops import raymarch
-from ngp_warp.outputs.renderer import subpixel_offsets
+from ngp_warp.outputs.renderer import subpixel_rays
 from ngp_warp.training.checkpoint import load_trainer
-
-
-def positive_int(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return int(text)
 
 
 def schedule(text: str) -> raymarch.MarchSchedule:
@@ -42,14 +36,10 @@ def schedule(text: str) -> raymarch.MarchSchedule:
 
 def views_rays(trainer, views: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Each of the first ``views`` test views' rays [R, 3] (origins, directions), every sub-pixel."""
-    split, rays = trainer.scene.test, []
-    for i in range(min(views, len(split.names))):
-        cam = split.camera(i)
-        parts = [view_rays(cam["c2w"], cam["intrinsics"], cam["distortion"], cam["width"], cam["height"],
-                           trainer.device, cam["fisheye"], shift)
-                 for shift in subpixel_offsets(trainer.config.supersample)]
-        rays.append(tuple(torch.cat(r) for r in zip(*parts)))
-    return rays
+    split = trainer.scene.test
+    return [subpixel_rays(cam["c2w"], cam["intrinsics"], cam["distortion"], cam["width"], cam["height"],
+                          trainer.device, cam["fisheye"], trainer.config.supersample)
+            for cam in (split.camera(i) for i in range(min(views, len(split.names))))]
 
 
 def rays_that_differ(a: tuple[torch.Tensor, ...], b: tuple[torch.Tensor, ...]) -> int:
@@ -82,7 +72,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", type=Path)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--views", type=positive_int, default=20)
+    ap.add_argument("--views", type=positive(int), default=20)
     ap.add_argument("--schedules", type=schedule, nargs="+",
                     default=[schedule(s) for s in ("32:128", "32:128:4194304", "64:128", "1000000000:1")])
     args = ap.parse_args()

@@ -93,6 +93,16 @@ def subpixel_offsets(supersample: int) -> list[tuple[float, float]]:
     return [((a + 0.5) / k - 0.5, (b + 0.5) / k - 0.5) for b in range(k) for a in range(k)]
 
 
+def subpixel_rays(c2w: torch.Tensor, intrinsics: torch.Tensor, distortion: torch.Tensor | None, width: int,
+                  height: int, device: torch.device, fisheye: bool, supersample: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every ray of one camera (arguments as :func:`ngp_warp.data.cameras.view_rays`'s): origins and
+    directions [supersample² × H × W, 3] float32, sub-pixel by sub-pixel (:func:`subpixel_offsets`),
+    each row by row, in one set so that a supersampled view's chunks are as large as a plain one's."""
+    rays = [view_rays(c2w, intrinsics, distortion, width, height, device, fisheye, shift)
+            for shift in subpixel_offsets(supersample)]
+    return tuple(torch.cat(r) for r in zip(*rays)) if len(rays) > 1 else rays[0]
+
+
 def _check_camera(c2w, intrinsics, distortion, width: int, height: int, spp: int, supersample: int,
                   fisheye: bool) -> None:
     for name, t, shape in (("c2w", c2w, (3, 4)), ("intrinsics", intrinsics, (4,))):
@@ -298,16 +308,13 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     bg = None if background is None else torch.full((3,), float(background), device=dev)
     sizer = None if chunk is not None else ChunkSizer(
         sample_budget(dev), 1.5 * model.view_samples_per_ray if model.view_samples_per_ray else 64.0)
-    shifts = subpixel_offsets(supersample)
-    # every sub-pixel's rays in one set: chunks as large for supersampled views as for plain ones
-    rays = [view_rays(c2w, intrinsics, distortion, width, height, dev, fisheye, shift) for shift in shifts]
-    rays_o, rays_d = (torch.cat(r) for r in zip(*rays)) if len(rays) > 1 else rays[0]
+    rays_o, rays_d = subpixel_rays(c2w, intrinsics, distortion, width, height, dev, fisheye, supersample)
     rgb, depth, opacity, counts = _render_rays(model, rays_o, rays_d, bg, spp, codes, first_round,
                                                lambda remaining: chunk or sizer.next_size(remaining), sizer)
     if sizer is not None:
         model.view_samples_per_ray = sizer.samples_per_ray
     model.view_shaded_per_ray = counts["n_shaded"] / (rays_o.shape[0] * spp)
-    scale = 1.0 / (len(shifts) * spp)
+    scale = 1.0 / (supersample**2 * spp)
     rgb = rgb.view(len(codes), -1, n, 3).sum(1).mul_(scale).clamp_(0, 1).reshape(len(codes), height, width, 3)
     return {
         "rgb": rgb[0],
