@@ -28,15 +28,22 @@ def _rotation_onto_z(up: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k / (1 + cos)
 
 
+def axes_focus(origins: np.ndarray, forward: np.ndarray) -> tuple[np.ndarray, float]:
+    """The point [3] nearest every camera's optical axis (least squares; ``origins`` [N, 3] and
+    unit ``forward`` [N, 3] float64), and the smallest eigenvalue of mean(I − f fᵀ): how far the
+    axes spread, near 0 where they are parallel and the point is unsettled (trusted above
+    :data:`MIN_SPREAD`)."""
+    proj = np.eye(3) - forward[:, :, None] * forward[:, None, :]  # [N, 3, 3] I - f f^T
+    a, b = proj.mean(0), np.einsum("nij,nj->i", proj, origins) / len(origins)
+    return np.linalg.lstsq(a, b, rcond=None)[0], float(np.linalg.eigvalsh(a)[0])
+
+
 def _centre(origins: np.ndarray, forward: np.ndarray, points: np.ndarray) -> np.ndarray:
     """The point nearest every camera's optical axis (least squares) when the axes converge in
     front of the cameras; else the median sparse point; else the mean camera centre."""
-    proj = np.eye(3) - forward[:, :, None] * forward[:, None, :]  # [N, 3, 3] I - f f^T
-    a, b = proj.mean(0), np.einsum("nij,nj->i", proj, origins) / len(origins)
-    if np.linalg.eigvalsh(a)[0] > MIN_SPREAD:
-        focus = np.linalg.solve(a, b)
-        if np.median(np.einsum("ni,ni->n", focus - origins, forward)) > 0:
-            return focus
+    focus, spread = axes_focus(origins, forward)
+    if spread > MIN_SPREAD and np.median(np.einsum("ni,ni->n", focus - origins, forward)) > 0:
+        return focus
     return np.median(points, axis=0) if len(points) else origins.mean(0)
 
 

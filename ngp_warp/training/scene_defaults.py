@@ -52,7 +52,7 @@ import math
 import torch
 
 from ngp_warp.data.loading import Scene
-from ngp_warp.data.scene_normalisation import MIN_SPREAD
+from ngp_warp.data.scene_normalisation import MIN_SPREAD, axes_focus
 from ngp_warp.data.transforms_json import CONTRACTIONS
 
 CONE_ANGLE = 1.0 / 256.0  # instant-ngp's cone angle for aabb_scale > 1
@@ -86,9 +86,8 @@ def _focus(c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
     smallest eigenvalue of mean(I − f fᵀ) (near 0 where the axes are parallel and q is unsettled)."""
     m = c2w.double().cpu()
     centres, forward = m[:, :, 3], -torch.nn.functional.normalize(m[:, :, 2], dim=-1)
-    projector = torch.eye(3, dtype=torch.float64) - forward[:, :, None] * forward[:, None, :]
-    q = torch.linalg.lstsq(projector.sum(0), (projector @ centres[:, :, None]).sum(0)).solution[:, 0]
-    return q, centres, forward, float(torch.linalg.eigvalsh(projector.mean(0))[0])
+    q, spread = axes_focus(centres.numpy(), forward.numpy())
+    return torch.from_numpy(q), centres, forward, spread
 
 
 def _inward(q: torch.Tensor, centres: torch.Tensor, forward: torch.Tensor) -> float:
