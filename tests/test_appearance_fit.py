@@ -11,9 +11,9 @@ import torch
 from ngp_warp.training.appearance_fit import FIT_ITERATIONS, fit_appearance_code, nearest_training_code, right_half
 from ngp_warp.training.config import TrainConfig
 from ngp_warp.data.loading import load_scene
-from ngp_warp.outputs.evaluate import evaluate, iter_test_renders, to_uint8
+from ngp_warp.outputs.evaluate import depth_to_uint8, evaluate, iter_test_renders, to_uint8
 from ngp_warp.ops.field import FieldConfig
-from ngp_warp.outputs.metrics import psnr
+from ngp_warp.outputs.metrics import psnr, ssim
 from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.data.scene_unbounded import write_unbounded_scene
 from ngp_warp.training.trainer import Trainer
@@ -202,5 +202,11 @@ def test_evaluation_without_codes_keeps_its_keys(tmp_path):
                             "device", "test_split",
                             "n_test_images", "per_image"}
     assert set(metrics["per_image"][0]) == {"image", "psnr", "ssim", "lpips"}
+    (record,), (name, view, truth) = metrics["per_image"], next(iter_test_renders(trainer))
+    assert record["image"] == name and type(record["psnr"]) is float and type(record["ssim"]) is float
+    assert record["psnr"] == pytest.approx(psnr(view["rgb"], truth), abs=1e-9)
+    assert record["ssim"] == pytest.approx(ssim(view["rgb"], truth), abs=1e-12)
+    written = torch.from_numpy(iio.imread(tmp_path / "depth" / f"{Path(name).stem}.png"))
+    assert torch.equal(written, depth_to_uint8(view["depth"], view["opacity"]))
     _, out, gt = next(iter_test_renders(trainer, fit_appearance=True))  # no codes: nothing fitted
     assert "appearance_code" not in out and out["rgb"].shape == gt.shape

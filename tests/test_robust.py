@@ -120,6 +120,20 @@ def test_divergence_stops_training_and_nan_weights_are_never_saved(tiny_scene, t
     assert calls == [] and not list(tmp_path.iterdir())
 
 
+def test_a_diverged_field_is_never_checkpointed_by_the_periodic_save(tiny_scene, tmp_path):
+    # the loss is read a readout late, except before a checkpoint: the save never meets NaN weights
+    trainer = Trainer(load_scene(tiny_scene), apply_overrides(tiny_config(40), ["lr=1e30"]), device="cpu")
+    saved = []
+
+    def save():
+        save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)
+        saved.append(trainer.step_count)
+
+    with pytest.raises(TrainingDiverged, match=r"loss is nan at step \d+ \(try a lower lr\)"):
+        trainer.train(show_progress=False, checkpoint=save, checkpoint_every=0.0)
+    assert saved and saved == sorted(saved) and trainer.step_count <= max(saved) + 10
+
+
 def test_checkpoint_of_another_scene_or_other_shapes_is_one_line(tiny_scene, tmp_path):
     trainer = Trainer(load_scene(tiny_scene), tiny_config(1), device="cpu")
     save_checkpoint(trainer, tmp_path / "c.pt", tiny_scene, 1)

@@ -14,7 +14,7 @@ from ngp_warp.outputs.evaluate import iter_test_renders
 from ngp_warp.ops.field import FieldConfig
 from ngp_warp.outputs.metrics import psnr
 from ngp_warp.data.scene import CAMERA_ANGLE_X, CAMERA_RADIUS, write_demo_scene
-from ngp_warp.training.train_step import StepPhases
+from ngp_warp.training.train_step import HostCopy, StepPhases
 from ngp_warp.training.trainer import Trainer
 
 
@@ -332,3 +332,19 @@ def test_rays_start_where_a_render_asks(tiny_scene):
     model.start_rays_at(2.0)
     assert model.march.near == 2.0 and model.march.far == far and not model.march.stratified
     assert model._stratified.near == 2.0 and model._stratified.stratified
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device"))])
+def test_host_copy_reads_the_values_of_its_start_not_later_ones(device):
+    gen = torch.Generator().manual_seed(3)
+    values = torch.randn(2, generator=gen, dtype=torch.float64).to(device)
+    copy = HostCopy(2, device)
+    assert not copy.pending
+    big = torch.randn(1024, 1024, generator=gen).to(device)
+    loss = (big @ big).square().mean()  # queued work the copy lands behind
+    copy.start(loss, values[1:])
+    expected = [float(loss), float(values[1])]
+    loss.fill_(-1.0)  # after the start: not in the copy
+    assert copy.pending
+    assert copy.read() == pytest.approx(expected, rel=1e-6) and not copy.pending

@@ -28,6 +28,7 @@ import sys
 import torch
 import torch.distributed as dist
 
+from ngp_warp.training.train_step import HostCopy
 from ngp_warp.training.trainer import READOUT_EVERY, Trainer
 
 FIT_MANY_TIMEOUT = datetime.timedelta(days=30)  # no store or group operation of fit-many expires during a long scene
@@ -167,19 +168,24 @@ class GradientReducer:
 
 class RankZeroClock:
     """Rank 0's training seconds, broadcast every ``READOUT_EVERY`` steps (only when the budget
-    is in seconds): every rank sees the same learning-rate schedule and stops at the same step."""
+    is in seconds) and read at the next such step, when the broadcast has landed (no wait for the
+    GPU): every rank sees the same learning-rate schedule and stops at the same step."""
 
     def __init__(self, trainer: Trainer):
         self.trainer = trainer
         self._seconds = torch.zeros(1, dtype=torch.float64, device=trainer.device)
+        self._copy = HostCopy(1, trainer.device)
         self._agreed = trainer.train_seconds
 
     def __call__(self, step: int) -> float:
-        """The training seconds all ranks agree on at ``step``."""
+        """The training seconds all ranks agree on at ``step``: rank 0's of ``READOUT_EVERY``
+        steps before (its start's before the first broadcast has been read)."""
         if self.trainer.config.seconds is not None and step % READOUT_EVERY == 0:
+            if self._copy.pending:
+                self._agreed = self._copy.read()[0]
             self._seconds.fill_(self.trainer.train_seconds)
             dist.broadcast(self._seconds, src=0)
-            self._agreed = float(self._seconds)
+            self._copy.start(self._seconds)
         return self._agreed
 
 

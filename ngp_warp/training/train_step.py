@@ -157,3 +157,38 @@ class StepPhases:
     def wrapped(self, wrap: Callable[[str, Callable], Callable]) -> StepPhases:
         """These phases with each call replaced by ``wrap(phase name, call)``."""
         return StepPhases(**{f.name: wrap(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)})
+
+
+class HostCopy:
+    """Scalars read on the host without stalling the GPU: :meth:`start` queues their copy into
+    pinned memory (CUDA) behind the work already queued; :meth:`read` returns them as floats, on
+    CUDA after waiting for that copy alone (a read a few steps later finds it landed, where
+    ``float(t)`` would wait for everything queued, a whole step's backward included). On the CPU
+    the copy is immediate.
+
+    Args:
+        n: how many scalars one copy holds.
+        device: the device of the tensors copied.
+    """
+
+    def __init__(self, n: int, device: torch.device | str):
+        device = torch.device(device)
+        self._stream = torch.cuda.current_stream(device) if device.type == "cuda" else None
+        self._host = torch.zeros(n, dtype=torch.float64, pin_memory=self._stream is not None)
+        self._landed = torch.cuda.Event() if self._stream is not None else None
+        self.pending = False
+
+    def start(self, *scalars: torch.Tensor) -> None:
+        """Queue the copy of ``scalars`` ([] or [1] tensors of the device, n of them)."""
+        for slot, value in zip(self._host, scalars, strict=True):
+            slot.copy_(value.reshape(()), non_blocking=True)
+        if self._landed is not None:
+            self._landed.record(self._stream)
+        self.pending = True
+
+    def read(self) -> list[float]:
+        """The last started copy's values (waiting for that copy alone)."""
+        if self._landed is not None:
+            self._landed.synchronize()
+        self.pending = False
+        return self._host.tolist()

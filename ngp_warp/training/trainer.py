@@ -31,9 +31,9 @@ from ngp_warp.ops.occupancy import OccupancyGrid
 from ngp_warp.ops.ray_loss import ray_loss
 from ngp_warp.outputs.renderer import render_view
 from ngp_warp.training.scene_defaults import edge_pixels, with_backdrop_alpha
-from ngp_warp.training.train_step import RayCount, StepPhases, TrainingField, backward
+from ngp_warp.training.train_step import HostCopy, RayCount, StepPhases, TrainingField, backward
 
-READOUT_EVERY = 10  # steps between progress readouts (each reads the loss: one host sync)
+READOUT_EVERY = 10  # steps between progress readouts (each copies the loss to the host, read at the next)
 
 
 class Trainer:
@@ -78,6 +78,7 @@ class Trainer:
         self.training_field = TrainingField(self.field, self.target_samples, graphs)
         self.step_count = 0
         self.train_seconds = 0.0
+        self._readout = HostCopy(2, self.device)  # a readout's loss and mse, on their way to the host
         # data-parallel training (ngp_warp.training.distributed.make_data_parallel) sets these hooks:
         self.ray_stream = 0  # this rank's ray seed stream
         self.gradient_reduction: Callable[[], None] | None = None  # after every backward, on every rank
@@ -224,8 +225,10 @@ class Trainer:
         """Train until the step or time budget of the config is spent, with a progress bar on
         stderr named ``desc`` (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps).
 
-        The loss is read every ``READOUT_EVERY`` steps and after the last (the readout's one
-        host sync, bar or not): a non-finite loss raises :class:`TrainingDiverged`.
+        The loss is copied to the host every ``READOUT_EVERY`` steps and read at the next
+        readout, when the copy has landed (no wait for the GPU), and after the last step: a
+        non-finite loss raises :class:`TrainingDiverged`, at most ``READOUT_EVERY`` steps late,
+        and never after a checkpoint of the diverged field (a checkpoint reads its step's loss first).
         ``checkpoint`` (e.g. a save to disk), when given, is called at the first readout after
         each ``checkpoint_every`` seconds of wall-clock. ``stop`` (a step count, seconds of
         training; either None) ends it earlier, the schedule still running over the whole budget
@@ -255,19 +258,42 @@ class Trainer:
                                clock / (start_seconds + seconds) if seconds else 0.0)
                 stats = self.step(progress)
                 if self.step_count % READOUT_EVERY == 0 or self.step_count == 1:
-                    _check_finite(stats, self.step_count)
+                    self._show_readout(bar if show_progress else None)  # the last readout's, landed by now
+                    self._start_readout(stats)
                     if show_progress:
-                        _readout(bar, stats)
                         bar.update(done() - bar.n)
                     if checkpoint is not None and time.monotonic() - last_checkpoint >= checkpoint_every:
+                        self._show_readout(bar if show_progress else None)  # never save a diverged field
                         checkpoint()
                         last_checkpoint = time.monotonic()
                     if until is not None and until():
                         break
+            if self.step_count > start_step:  # the last step's loss, read once the GPU is done
+                self._start_readout(stats)
+                self._show_readout(bar if show_progress else None)
             bar.update(done() - bar.n)
-        if self.step_count > start_step:
-            _check_finite(stats, self.step_count)
         self.flush()
+
+    def _start_readout(self, stats: dict) -> None:
+        """Queue the copy of a step's loss and mse (:meth:`step`'s ``stats``) to the host."""
+        self._readout.start(stats["loss"], stats["mse"])
+        self._readout_of = {"step": self.step_count, "rays": stats["rays"], "samples": stats["samples"]}
+
+    def _show_readout(self, bar) -> None:
+        """Read the queued readout, if any: check its loss and show it on ``bar`` (None: check only).
+
+        Raises:
+            TrainingDiverged: when the loss is not finite.
+        """
+        if not self._readout.pending:
+            return
+        (loss, mse), of = self._readout.read(), self._readout_of
+        if not math.isfinite(loss):
+            raise TrainingDiverged(f"training diverged: the loss is {loss} at step {of['step']} (try a lower lr)")
+        if bar is not None:
+            psnr = -10.0 * math.log10(max(mse, 1e-10))
+            bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}", rays=of["rays"], samples=of["samples"],
+                            refresh=False)
 
     # -- inference -------------------------------------------------------------------------
     @property
@@ -346,17 +372,3 @@ def _start_environment(environment: torch.nn.Linear, images: torch.Tensor) -> No
     with the backdrop given)."""
     colour = edge_pixels(images).float().mean(0) / 255.0
     environment.bias.copy_(torch.logit(colour.clamp(0.02, 0.98)))
-
-
-def _check_finite(stats: dict, step: int) -> None:
-    """TrainingDiverged when a step's loss (read on the host: a sync) is not finite."""
-    loss = float(stats["loss"])
-    if not math.isfinite(loss):
-        raise TrainingDiverged(f"training diverged: the loss is {loss} at step {step} (try a lower lr)")
-
-
-def _readout(bar, stats: dict) -> None:
-    """Show a step's loss, PSNR (from its mse), rays and samples (reading them syncs)."""
-    psnr = -10.0 * math.log10(max(float(stats["mse"]), 1e-10))
-    bar.set_postfix(loss=f"{float(stats['loss']):.4f}", psnr=f"{psnr:.2f}", rays=stats["rays"],
-                    samples=stats["samples"], refresh=False)
