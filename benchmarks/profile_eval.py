@@ -92,7 +92,7 @@ def main() -> None:
         "+ PSNR": lambda out, gt: psnr(out["rgb"], gt),
         "+ SSIM": lambda out, gt: (psnr(out["rgb"], gt), ssim(out["rgb"], gt)),
         "+ images to host": lambda out, gt: (psnr(out["rgb"], gt), ssim(out["rgb"], gt), to_uint8(out["rgb"]),
-                                             depth_to_uint8(out["depth"], out["opacity"]).cpu()),
+                                             depth_to_uint8(out["depth"], out["opacity"])),
     }
     timed_pass(trainer, 2, passes["render"])  # kernels loaded
     rows = [(name, timed_pass(trainer, views, work)) for name, work in passes.items()]

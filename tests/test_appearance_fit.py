@@ -207,6 +207,6 @@ def test_evaluation_without_codes_keeps_its_keys(tmp_path):
     assert record["psnr"] == pytest.approx(psnr(view["rgb"], truth), abs=1e-9)
     assert record["ssim"] == pytest.approx(ssim(view["rgb"], truth), abs=1e-12)
     written = torch.from_numpy(iio.imread(tmp_path / "depth" / f"{Path(name).stem}.png"))
-    assert torch.equal(written, depth_to_uint8(view["depth"], view["opacity"]))
+    assert torch.equal(written, torch.from_numpy(depth_to_uint8(view["depth"], view["opacity"])))
     _, out, gt = next(iter_test_renders(trainer, fit_appearance=True))  # no codes: nothing fitted
     assert "appearance_code" not in out and out["rgb"].shape == gt.shape

@@ -10,7 +10,7 @@ def test_depth_spans_the_opaque_pixels_near_bright():
     gen = torch.Generator().manual_seed(0)
     depth = 0.5 + 4 * torch.rand(24, 32, generator=gen)
     opacity = torch.rand(24, 32, generator=gen)
-    img = depth_to_uint8(depth * opacity, opacity).numpy()  # the renderer's depth is weighted by opacity
+    img = depth_to_uint8(depth * opacity, opacity)  # the renderer's depth is weighted by opacity
     opaque = (opacity > 0.5).numpy()
     d = depth.numpy()
     want = 1.0 - (d - d[opaque].min()) / (d[opaque].max() - d[opaque].min())

@@ -18,7 +18,7 @@ from ngp_warp.training.appearance_fit import (FIT_ITERATIONS, fit_appearance_and
                                      nearest_training_code, right_half)
 from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.outputs.lpips import lpips_or_reason, lpips_summary
-from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr_on_device, ssim_on_device
+from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr, ssim
 from ngp_warp.training.trainer import Trainer
 
 
@@ -33,25 +33,18 @@ def composite_on(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
 
 
 def to_uint8(img: torch.Tensor) -> np.ndarray:
-    """[..., C] float in [0, 1] → uint8 pixels on the host."""
-    return uint8_on_device(img).cpu().numpy()
+    return (img.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
 
 
-def uint8_on_device(img: torch.Tensor) -> torch.Tensor:
-    """[..., C] float in [0, 1] → uint8 pixels on its device."""
-    return (img.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8)
-
-
-def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
-    """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8 on the
-    device of ``depth`` ([H, W] float, as ``opacity``)."""
+def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
+    """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8."""
     d = depth / opacity.clamp_min(1e-6)
     mask = opacity > 0.5
     # the range of the opaque pixels without reading it on the host (no pixel opaque: all black)
     lo = torch.where(mask, d, torch.inf).amin()
     hi = torch.where(mask, d, -torch.inf).amax()
     d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
-    return uint8_on_device(torch.where(mask, d, torch.zeros_like(d)))
+    return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
 
 class BackgroundWrites:
@@ -69,16 +62,6 @@ class BackgroundWrites:
             self._pending.popleft().result()
         self._pending.append(self._pool.submit(write, *args))
 
-    def submit_image(self, path: Path, pixels: torch.Tensor) -> None:
-        """Write ``pixels`` ([H, W] or [H, W, C] uint8 on any device) to ``path``, copied to the
-        host on a writing thread once the work queued before them is done (an event on the
-        current stream): the caller does not wait for the GPU."""
-        ready = None
-        if pixels.is_cuda:
-            ready = torch.cuda.Event()
-            ready.record(torch.cuda.current_stream(pixels.device))
-        self.submit(_write_when_ready, path, pixels, ready)
-
     def __enter__(self) -> BackgroundWrites:
         return self
 
@@ -88,12 +71,6 @@ class BackgroundWrites:
                 self._pending.popleft().result()
         finally:
             self._pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _write_when_ready(path: Path, pixels: torch.Tensor, ready: torch.cuda.Event | None) -> None:
-    if ready is not None:
-        ready.synchronize()
-    iio.imwrite(path, pixels.cpu().numpy())
 
 
 def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1, fit_appearance: bool = False,
@@ -143,19 +120,11 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
 
 
 def _scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[dict, str]:
-    """PSNR, SSIM (None below an 11-pixel window) as [] tensors on the images' device (not
-    read on the host) and LPIPS (None and the reason when it cannot be computed) of rgb against
-    gt ([H, W, 3] float32 in [0, 1])."""
-    s = ssim_on_device(rgb, gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
+    """PSNR, SSIM (None below an 11-pixel window) and LPIPS (None and the reason when it cannot
+    be computed) of rgb against gt ([H, W, 3] float32 in [0, 1])."""
+    s = ssim(rgb, gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
     lpips, lpips_note = lpips_or_reason(rgb, gt)
-    return {"psnr": psnr_on_device(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
-
-
-def _on_host(per_image: list[dict]) -> list[dict]:
-    """``per_image`` with every tensor value read on the host as a float, all in one read."""
-    tensors = [v for row in per_image for v in row.values() if isinstance(v, torch.Tensor)]
-    values = iter(torch.stack(tensors).tolist() if tensors else [])
-    return [{k: next(values) if isinstance(v, torch.Tensor) else v for k, v in row.items()} for row in per_image]
+    return {"psnr": psnr(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
 
 
 NEAREST_CODE_KEYS = ("psnr_nearest_code", "psnr_nearest_code_left", "psnr_nearest_code_right")
@@ -164,20 +133,13 @@ NEAREST_CODE_KEYS = ("psnr_nearest_code", "psnr_nearest_code_left", "psnr_neares
 def psnr_whole_and_halves(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[float, float, float]:
     """PSNR of ``rgb`` against ``gt`` ([H, W, 3] float32 each): the whole image, its left half
     (columns < W // 2) and its right half (:func:`right_half`)."""
-    return tuple(float(x) for x in _whole_and_halves_on_device(rgb, gt))
-
-
-def _whole_and_halves_on_device(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """:func:`psnr_whole_and_halves` as [] tensors on the device (not read on the host)."""
     half = gt.shape[1] // 2
-    return (psnr_on_device(rgb, gt), psnr_on_device(rgb[:, :half], gt[:, :half]),
-            psnr_on_device(right_half(rgb), right_half(gt)))
+    return psnr(rgb, gt), psnr(rgb[:, :half], gt[:, :half]), psnr(right_half(rgb), right_half(gt))
 
 
 def _nearest_code_scores(rgb: torch.Tensor, gt: torch.Tensor) -> dict:
-    """:func:`psnr_whole_and_halves` of a view rendered with the nearest training camera's code,
-    as [] tensors on the device (not read on the host)."""
-    return dict(zip(NEAREST_CODE_KEYS, _whole_and_halves_on_device(rgb, gt)))
+    """:func:`psnr_whole_and_halves` of a view rendered with the nearest training camera's code."""
+    return dict(zip(NEAREST_CODE_KEYS, psnr_whole_and_halves(rgb, gt)))
 
 
 def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
@@ -202,15 +164,15 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
             if fitted:
                 scores, lpips_note = _scores(right_half(out["rgb"]), right_half(gt))
                 nearest, mean = out["other_rgb"]
-                scores["psnr_mean_code"] = psnr_on_device(mean, gt)
+                scores["psnr_mean_code"] = psnr(mean, gt)
                 scores.update(_nearest_code_scores(nearest, gt))
             else:
                 scores, lpips_note = _scores(out["rgb"], gt)
             per_image.append({"image": name, **scores})
-            writes.submit_image(renders / f"{stem}.png", uint8_on_device(out["rgb"]))
-            writes.submit_image(depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
+            writes.submit(iio.imwrite, renders / f"{stem}.png", to_uint8(out["rgb"]))
+            writes.submit(iio.imwrite, depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
+            bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
             bar.update()
-        per_image = _on_host(per_image)
         bar.close()
     posed = " and pose" if trainer.cameras is not None else ""
     appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations), scored on "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 
 import torch
 import torch.nn.functional as F
@@ -38,14 +39,9 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     .. math::
         \\mathrm{PSNR} = -10 \\log_{10} \\frac{1}{HWC} \\sum (\\mathrm{pred} - \\mathrm{gt})^2
     """
-    return float(psnr_on_device(pred, gt))
-
-
-def psnr_on_device(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """:func:`psnr` as a [] float64 tensor on the images' device, not read on the host (no wait
-    for the GPU)."""
     _check(pred, gt)
-    return ((pred.double() - gt.double()) ** 2).mean().log10().mul_(-10.0)
+    mse = float(((pred.double() - gt.double()) ** 2).mean())
+    return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
 
 
 @functools.lru_cache(maxsize=None)  # one per device, made once
@@ -91,12 +87,6 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor) -> float:
 
     with means and (co)variances taken under the Gaussian window.
     """
-    return float(ssim_on_device(pred, gt))
-
-
-def ssim_on_device(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """:func:`ssim` as a [] float64 tensor on the images' device, not read on the host (no wait
-    for the GPU)."""
     _check(pred, gt, SSIM_WINDOW)
     x = pred.double().permute(2, 0, 1)  # [C, H, W]
     y = gt.double().permute(2, 0, 1)
@@ -108,4 +98,4 @@ def ssim_on_device(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     cov = xy - mu_x * mu_y
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-    return s.mean()
+    return float(s.mean())
