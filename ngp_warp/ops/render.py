@@ -254,58 +254,50 @@ def render_rays(
     alpha_thre: float = 0.0, t_min: torch.Tensor | None = None, t_max: torch.Tensor | None = None,
     normalize_depth: bool = False,
 ) -> dict:
-    """Render rays through ``grid`` with the radiance field ``field_fn``.
+    """Render rays through ``grid`` with the radiance field ``field_fn`` (:math:`w_i` as in
+    :func:`ngp_warp.composite`):
 
     .. math::
 
         C_{out} = \\sum_i w_i c_i + b\\,(1 - O), \\qquad O = \\sum_i w_i, \\qquad
         D = \\sum_i w_i \\frac{t^{start}_i + t^{end}_i}{2}
 
-    with :math:`w_i` as in :func:`ngp_warp.composite`.
-
     Args:
-        rays_o: [N, 3] float32 origins. rays_d: [N, 3] float32 unit directions. Any strides;
-            leading dimensions [..., 3] are flattened (the outputs per ray take them back).
-            Rays that require grad get it through the sample positions and the field's
-            directions (:func:`_attached`). float64 rays (and a float64 field) run the float64
-            path: the march in float32, then positions, directions and compositing in float64
-            through the pure-torch twin, differentiable to any order (``gradcheck``).
+        rays_o, rays_d: [N, 3] float32 origins and unit directions, any strides; leading
+            dimensions [..., 3] are flattened (the outputs per ray take them back). Rays that
+            require grad get it through the sample positions and directions (:func:`_attached`).
+            float64 rays (and field) march in float32, then position, shade and composite in
+            float64 through the pure-torch twin, differentiable to any order (``gradcheck``).
         grid: :class:`ngp_warp.OccupancyGrid` on the rays' device.
         field_fn: ``(positions [S, 3] float32, directions [S, 3] float32) → (sigmas [S] or
-            [S, 1] ≥ 0, rgbs [S, 3])``. When no ray has a sample it is called with S = 0 under
-            autograd (so that the zero outputs stay in its graph and ``backward`` runs), and
-            not at all without.
+            [S, 1] ≥ 0, rgbs [S, 3])``. With no sample at all it is called with S = 0 under
+            autograd (the zero outputs stay in its graph: ``backward`` runs), else not at all.
         march: the ray interval, steps and caps (:class:`ngp_warp.MarchOptions`; ``step_size``
             defaults to the box diagonal / 1024).
         early_stop_eps: samples behind transmittance ``< early_stop_eps`` contribute nothing
-            (the field is still evaluated on them, unless ``sigma_fn`` prunes them first).
+            (``field_fn`` still runs on them unless ``sigma_fn`` prunes them first).
         background: None, a float, [3] or [N, 3] colour blended behind the samples.
         sigma_fn: ``positions [S, 3] → σ [S]``; when given, it is evaluated without gradient on
             every marched sample and only the samples that composite (transmittance in front
             ``≥ early_stop_eps``) go to ``field_fn`` (see :func:`ngp_warp.prune_samples`).
-        sample_capacity: with ``sigma_fn``, ``field_fn`` gets exactly this many rows whenever
-            any sample was marched (padding rows at the grid's centre, with zero weight), so its
-            shapes are fixed; rays that do not fit are dropped and flagged in ``ray_mask``.
+        sample_capacity: with ``sigma_fn``, ``field_fn`` gets exactly this many rows when any
+            sample was marched (padding at the grid's centre, zero weight): fixed shapes; rays
+            that do not fit are dropped and flagged in ``ray_mask``.
         return_samples: also return the packed samples and their differentiable weights.
-        before_sync: as in :func:`ngp_warp.ray_marching`: called once, when the march has
-            queued its count and before the host waits for it (independent device work there
-            hides the synchronisation).
-        ray_images: optional [N] int64 training-image index of each ray (for per-image
-            appearance codes); then ``field_fn`` is called as ``field_fn(positions, directions,
-            images [S] int64)`` with each sample's image (padding rows: image 0).
-        validate: check the inputs (on by default for direct calls): finite origins and unit
-            directions (read with the march's sample count: no extra host sync) and σ ≥ 0 from
-            ``field_fn`` and ``sigma_fn`` (one host sync each); ValueError otherwise. Training
-            and rendering loops whose rays and field are known good pass False.
+        before_sync: as in :func:`ngp_warp.ray_marching`: called once the march has queued its
+            count, before the host waits for it (device work queued there hides the wait).
+        ray_images: [N] int64 training image of each ray (per-image appearance codes), or
+            None; then ``field_fn(positions, directions, images [S] int64)`` (padding: image 0).
+        validate: check finite origins and unit directions (read with the march's count: no
+            extra sync) and σ ≥ 0 from ``field_fn`` and ``sigma_fn`` (a host sync each), else
+            ValueError. Loops whose rays and field are known good pass False.
         near_gradient_distance: > 0: each sample's σ and colour gradients are scaled by
             :math:`\\min(1, (t / \\text{this})^2)` (:func:`_near_camera_scale`).
         alpha_thre: with ``sigma_fn``, samples whose α = 1 − exp(−σ δ) is below this are left
             out before the field (nerfacc's ``alpha_thre``).
         t_min, t_max: [N] float32 per-ray interval (nerfacc's): samples whose midpoint lies
-            outside their ray's [t_min, t_max] are left out (the march's own ``near``/``far``
-            must cover them).
-        normalize_depth: return depth as the expected distance Σ w t / Σ w (0 where nothing
-            is hit) instead of Σ w t.
+            outside it are left out (the march's ``near``/``far`` must cover it).
+        normalize_depth: depth as the expected distance Σ w t / Σ w, not Σ w t.
 
     Returns:
         dict with ``rgb`` [N, 3], ``opacity`` [N], ``depth`` [N] (float32, differentiable w.r.t.
@@ -326,13 +318,21 @@ def render_rays(
     if validate:
         field_fn, sigma_fn = _checked(field_fn, "field_fn"), sigma_fn and _checked(sigma_fn, "sigma_fn")
     bg = _background(background, rays_o.shape[0], rays_o.device)
-    extra = {}
-    samples = _within(samples, t_min, t_max)
+    samples, extra = _within(samples, t_min, t_max), {}
     if sigma_fn is not None:
         samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity, alpha_thre)
     if rays_o.dtype == torch.float64 or ((rays_o.requires_grad or rays_d.requires_grad) and torch.is_grad_enabled()):
         samples = _attached(samples, rays_o, rays_d)
-    rgb, opacity, depth, weights = _shade(samples, field_fn, early_stop_eps, ray_images, near_gradient_distance)
+    shaded = _shade(samples, field_fn, early_stop_eps, ray_images, near_gradient_distance)
+    return _outputs(*shaded, samples, bg, leading, extra, normalize_depth, return_samples)
+
+
+def _outputs(rgb: torch.Tensor, opacity: torch.Tensor, depth: torch.Tensor, weights: torch.Tensor,
+             samples: RaySamples, bg: torch.Tensor | None, leading: torch.Size, extra: dict,
+             normalize_depth: bool, return_samples: bool) -> dict:
+    """:func:`render_rays`'s dict from the composite of its N rays (rgb [N, 3], opacity and
+    depth [N], weights [S] of the S ``samples``): ``bg`` ([3] or [N, 3], None: none) blended
+    behind, the per-ray outputs shaped ``leading``, ``extra`` (the pruning's outputs) added."""
     if bg is not None:
         rgb = rgb + bg * (1.0 - opacity)[:, None]
     if normalize_depth:
