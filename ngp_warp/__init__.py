@@ -40,18 +40,27 @@ def _interrupt_while_loading():
         raise SystemExit(130)
 
 
-with _interrupt_while_loading():
-    from ngp_warp import _wp
+# The public API loads on first use (PEP 562), so that ``import ngp_warp`` and the command
+# line's argument handling stay free of torch and Warp: ``ngp-warp train --gpus N`` starts its
+# ranks before anything heavy loads. Warp initialises quietly when ``ngp_warp._wp`` loads.
+_PUBLIC = {"composite": "ngp_warp.ops.composite", "HashGridEncoding": "ngp_warp.ops.hashgrid",
+           "NGPField": "ngp_warp.ops.field", "OccupancyGrid": "ngp_warp.ops.occupancy",
+           "prune_samples": "ngp_warp.ops.prune", "MarchOptions": "ngp_warp.ops.raymarch",
+           "ray_marching": "ngp_warp.ops.raymarch", "render_rays": "ngp_warp.ops.render"}
 
-    _wp.init()
-    # Bound eagerly: the function ``composite`` shares its name with its module, and an eager
-    # from-import keeps the package attribute pointing at the function.
-    from ngp_warp.ops.composite import composite
-    from ngp_warp.ops.hashgrid import HashGridEncoding
-    from ngp_warp.ops.field import NGPField
-    from ngp_warp.ops.occupancy import OccupancyGrid
-    from ngp_warp.ops.prune import prune_samples
-    from ngp_warp.ops.raymarch import MarchOptions, ray_marching
-    from ngp_warp.ops.render import render_rays
+__all__ = [*sorted(_PUBLIC), "__version__"]
 
-__all__ = ["HashGridEncoding", "MarchOptions", "NGPField", "OccupancyGrid", "composite", "prune_samples", "ray_marching", "render_rays", "__version__"]
+
+def __getattr__(name: str):
+    if name not in _PUBLIC:
+        raise AttributeError(f"module 'ngp_warp' has no attribute {name!r}")
+    import importlib
+
+    with _interrupt_while_loading():
+        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PUBLIC))

@@ -57,6 +57,9 @@ def init() -> None:
         _initialised = True
 
 
+init()  # on import: every module that launches kernels imports this one
+
+
 def cuda_available() -> bool:
     """True when both torch and Warp can use a CUDA device."""
     init()

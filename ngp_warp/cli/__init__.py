@@ -5,13 +5,48 @@ this package."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
+import os
 import sys
 
 from ngp_warp import _interrupt_while_loading
+from ngp_warp.cli import ranks
+from ngp_warp.cli.common import CHECKPOINT, MAX_DOWNSCALE, UserError, folder_name, positive, seed_number
+from ngp_warp.wall_clock import command_started
 
-with _interrupt_while_loading():
+__all__ = ["CHECKPOINT", "UserError", "main"]
+
+
+def _common(sp: argparse.ArgumentParser) -> None:
+    """The device and quiet options most subcommands take."""
+    sp.add_argument("--device", default="auto", help="cpu, cuda or cuda:N (default: cuda when present)")
+    sp.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _training(sp: argparse.ArgumentParser) -> None:
+    """The options of the subcommands that train."""
+    from ngp_warp.outputs.camera_path import MAX_FRAMES
+
+    budget = sp.add_mutually_exclusive_group()
+    budget.add_argument("--steps", type=positive(int), help="training steps")
+    budget.add_argument("--seconds", type=positive(float), help="training wall-clock budget in seconds")
+    sp.add_argument("--downscale", type=positive(int, high=MAX_DOWNSCALE), help="shrink images by this integer factor (default 1)")
+    sp.add_argument("--seed", type=seed_number, default=0)
+    sp.add_argument("--target-samples", type=positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
+    sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
+                         "(repeatable; see ngp_warp.training.config.TrainConfig)")
+    sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
+    sp.add_argument("--frames", type=positive(int, high=MAX_FRAMES), default=60, help="orbit video frames")
+    sp.add_argument("--overwrite", action="store_true", help="replace the run already in the output folder")
+    sp.add_argument("--checkpoint-every", type=positive(float), default=300.0, metavar="SECONDS",
+                    help="save a checkpoint this often while training (default 300; also on Ctrl-C and SIGTERM)")
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The whole command line (loading every subcommand's modules: torch and Warp among them)."""
     from ngp_warp.cli.bench import cmd_bench
-    from ngp_warp.cli.common import CHECKPOINT, MAX_DOWNSCALE, UserError, folder_name, positive, seed_number
     from ngp_warp.cli.evaluate import cmd_eval
     from ngp_warp.cli.export import add_export_parser
     from ngp_warp.cli.fit_many import add_fit_many_parser
@@ -19,43 +54,17 @@ with _interrupt_while_loading():
     from ngp_warp.cli.render import add_path_arguments, cmd_render
     from ngp_warp.cli.train import cmd_demo, cmd_train
     from ngp_warp.cli.view import add_view_parser
-    from ngp_warp.outputs.camera_path import MAX_FRAMES
-from ngp_warp.wall_clock import command_started
 
-__all__ = ["CHECKPOINT", "UserError", "main"]
-
-
-def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ngp-warp", description="instant-NGP radiance fields on Warp kernels (CPU or CUDA)")
     sub = p.add_subparsers(dest="command", required=True)
-
-    def common(sp):
-        sp.add_argument("--device", default="auto", help="cpu, cuda or cuda:N (default: cuda when present)")
-        sp.add_argument("--quiet", action="store_true", help="no progress bars")
-
-    def training(sp):
-        budget = sp.add_mutually_exclusive_group()
-        budget.add_argument("--steps", type=positive(int), help="training steps")
-        budget.add_argument("--seconds", type=positive(float), help="training wall-clock budget in seconds")
-        sp.add_argument("--downscale", type=positive(int, high=MAX_DOWNSCALE), help="shrink images by this integer factor (default 1)")
-        sp.add_argument("--seed", type=seed_number, default=0)
-        sp.add_argument("--target-samples", type=positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
-        sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
-                             "(repeatable; see ngp_warp.training.config.TrainConfig)")
-        sp.add_argument("--no-video", action="store_true", help="skip the orbit video")
-        sp.add_argument("--frames", type=positive(int, high=MAX_FRAMES), default=60, help="orbit video frames")
-        sp.add_argument("--overwrite", action="store_true", help="replace the run already in the output folder")
-        sp.add_argument("--checkpoint-every", type=positive(float), default=300.0, metavar="SECONDS",
-                        help="save a checkpoint this often while training (default 300; also on Ctrl-C and SIGTERM)")
 
     t = sub.add_parser("train", help="train on a scene folder, then evaluate and render")
     t.add_argument("scene", help="NeRF-synthetic folder or folder with an instant-ngp transforms.json")
     t.add_argument("--out", type=folder_name, required=True, help="output folder")
     t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    t.add_argument("--gpus", type=positive(int), default=1, help="data-parallel ranks through torchrun (README)")
-    training(t)
-    common(t)
+    t.add_argument("--gpus", type=positive(int), default=1, help="data-parallel ranks on this machine, one GPU each (docs/multi-gpu.md)")
+    _training(t)
+    _common(t)
     t.set_defaults(func=cmd_train)
 
     d = sub.add_parser("demo", help="generate the built-in procedural scene, train and evaluate on it")
@@ -63,14 +72,14 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--scene", choices=("demo", "unbounded"), default="demo",  # ngp_warp.training.demo.DEMOS
                    help="demo: objects in a box, white background; unbounded: the 360° scene (objects "
                         "on a ground plane to the horizon, learned background, contracted space)")
-    training(d)
-    common(d)
+    _training(d)
+    _common(d)
     d.set_defaults(func=cmd_demo)
 
     e = sub.add_parser("eval", help="evaluate a trained output folder on its test split")
     e.add_argument("dir", type=folder_name)
     e.add_argument("--scene", help="scene folder, if it moved since training")
-    common(e)
+    _common(e)
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="render a video along a camera path from a trained output folder")
@@ -81,30 +90,45 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--near", type=positive(float), metavar="D",
                    help="rays start D from their camera, in the scene's lengths (default: where training's "
                         "started; a path closer to the subject than the training cameras needs less)")
-    common(r)
+    _common(r)
     r.set_defaults(func=cmd_render)
 
-    common(add_export_parser(sub, positive(int), positive(float)))
-    common(add_view_parser(sub))
+    _common(add_export_parser(sub, positive(int), positive(float)))
+    _common(add_view_parser(sub))
     add_process_parser(sub)
 
-    add_fit_many_parser(sub, training, common, folder_name, positive(int))
+    add_fit_many_parser(sub, _training, _common, folder_name, positive(int))
 
     b = sub.add_parser("bench", help="kernel throughput table")
     b.add_argument("--quick", action="store_true", help="small sizes only")
-    common(b)
+    _common(b)
     b.set_defaults(func=cmd_bench)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     started = command_started()
-    args = _parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    asked = ranks.ranks_asked(argv)
+    if 1 < asked <= (os.cpu_count() or 1) and not ranks.started_as_rank():  # before anything heavy loads
+        return ranks.launch(asked, ranks.without_gpus(argv))
+    with _interrupt_while_loading():
+        parser = _parser()
+    args = _parse(parser, argv)
     args.started = started
-    if getattr(args, "gpus", 1) > 1:  # run this command line as that many torchrun ranks
-        from ngp_warp.training.distributed import launch_ranks
-
-        return launch_ranks(args, sys.argv[1:] if argv is None else argv)
+    if getattr(args, "gpus", 1) > 1:
+        if ranks.started_as_rank():
+            error = "torchrun already started the ranks (drop --gpus)"
+        elif (error := _ranks_do_not_fit(args, args.gpus)) is None:  # more GPUs than cores
+            return ranks.launch(args.gpus, ranks.without_gpus(argv))
+        print(f"ngp-warp: error: --gpus {args.gpus}: {error}", file=sys.stderr)
+        return 2
+    if ranks.started_as_rank():
+        n = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ["WORLD_SIZE"]))
+        if (error := _ranks_do_not_fit(args, n)) is not None:
+            if ranks.rank() == 0:
+                print(f"ngp-warp: error: --gpus {n}: {error}", file=sys.stderr)
+            return 2
     with _interrupt_while_loading():
         from ngp_warp.training.checkpoint import CheckpointError
         from ngp_warp.data.loading import DataError
@@ -124,3 +148,26 @@ def main(argv: list[str] | None = None) -> int:
         print("ngp-warp: interrupted", file=sys.stderr)
         return 130
     return 0
+
+
+def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """``parser.parse_args(argv)``; a rank other than 0 exits as the parser does (code 2) but
+    silently: rank 0 reports the mistake every rank makes."""
+    if ranks.rank() == 0:
+        return parser.parse_args(argv)
+    with contextlib.redirect_stderr(io.StringIO()):
+        return parser.parse_args(argv)
+
+
+def _ranks_do_not_fit(args: argparse.Namespace, n: int) -> str | None:
+    """Why this machine cannot hold ``n`` ranks (one GPU each, or one CPU core each with
+    ``--device cpu``), or None."""
+    import torch
+
+    if getattr(args, "device", "auto") != "cpu":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count < n:
+            return f"this machine has {count} CUDA GPU(s) (with --device cpu: {n} CPU processes)"
+    elif n > (os.cpu_count() or 1):
+        return f"this machine has {os.cpu_count() or 1} CPU cores, too few for {n} CPU processes"
+    return None

@@ -1,4 +1,4 @@
-"""``python -m ngp_warp.cli`` (as torchrun runs the command)."""
+"""``python -m ngp_warp.cli`` (as ``--gpus`` and torchrun run the ranks)."""
 
 import sys
 

@@ -38,7 +38,7 @@ METRICS_KEYS = ("psnr", "steps", "train_seconds", "n_test_images", "per_image")
 class FitManyError(DataError):
     """A manifest that names no usable scene folders, a bad option, or scenes that failed; one
     line. A DataError, which the CLI reports also when run as ``python -m ngp_warp.cli`` (as
-    torchrun runs it), where the CLI's own error class is another one."""
+    the ranks run it), where the CLI's own error class is another one."""
 
 
 def _expand(pattern: str, base: Path) -> list[Path]:
@@ -164,7 +164,7 @@ def claimed_scenes(order: list[int]):
     if not (dist.is_available() and dist.is_initialized()):
         yield from order
         return
-    store = dist.distributed_c10d._get_default_store()  # torchrun's rendezvous store, shared by the ranks
+    store = dist.distributed_c10d._get_default_store()  # the process group's store, shared by the ranks
     while (claim := _stored(store.add, QUEUE_KEY, 1) - 1) < len(order):
         yield order[claim]
 
@@ -294,7 +294,7 @@ def add_fit_many_parser(sub, training, common, folder, positive_int) -> argparse
     f = sub.add_parser("fit-many", help="train one field per scene of a manifest, scenes spread over ranks")
     f.add_argument("manifest", help="text file of scene folders (one a line, relative to it) or a glob")
     f.add_argument("--out", type=folder, required=True, help="output folder: one run folder per scene")
-    f.add_argument("--gpus", type=positive_int, default=1, help="ranks through torchrun, one GPU each (README)")
+    f.add_argument("--gpus", type=positive_int, default=1, help="ranks on this machine, one GPU each (docs/multi-gpu.md)")
     training(f)
     common(f)
     f.set_defaults(func=cmd_fit_many)

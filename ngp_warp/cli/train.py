@@ -18,7 +18,7 @@ def cmd_train(args) -> None:
     config = None if args.resume else train_config(args)  # bad settings fail before any loading
     from ngp_warp.training.distributed import join_data_parallel
 
-    args.data_parallel = join_data_parallel(args)  # under torchrun: this rank's device in args.device
+    args.data_parallel = join_data_parallel(args)  # one of several ranks: this rank's device in args.device
     if args.data_parallel:  # the ranks train one model: no probe (each rank's could decide apart)
         refuse_probe(config, "with data-parallel training (--gpus > 1)")
         config = no_probe(config)

@@ -1,7 +1,7 @@
 """Data-parallel training on torch.distributed: NCCL between GPUs, gloo between CPU processes.
 
-``torchrun --nproc-per-node N -m ngp_warp.cli train SCENE ...`` (or ``--gpus N``, which runs
-torchrun through :func:`launch`) starts N ranks. Each holds the whole model and draws its own rays
+``ngp-warp train SCENE --gpus N`` (:mod:`ngp_warp.cli.ranks`) or ``torchrun --nproc-per-node N -m
+ngp_warp.cli train SCENE ...`` starts N ranks. Each holds the whole model and draws its own rays
 (its own seed stream) from the shared training images; after each backward the gradients are
 averaged over the ranks, so every rank applies the same update and the models stay equal:
 
@@ -47,12 +47,12 @@ def is_main_rank() -> bool:
 
 
 def started_by_torchrun() -> bool:
-    """Whether torchrun started this process as one of several ranks (WORLD_SIZE > 1)."""
+    """Whether ``--gpus`` or torchrun started this process as one of several ranks (WORLD_SIZE > 1)."""
     return int(os.environ.get("WORLD_SIZE", "1")) > 1
 
 
 def join(device: str, backend: str | None = None, timeout: datetime.timedelta | None = None) -> str:
-    """Join the process group torchrun set up (``env://``) and return this rank's device:
+    """Join the process group of the ranks (``env://``: torchrun's or ``--gpus``'s) and return this rank's device:
     ``cuda:LOCAL_RANK`` for a CUDA ``device`` (``auto``: CUDA when present), else ``cpu``.
     ``backend`` defaults to NCCL on CUDA and gloo on the CPU."""
     from ngp_warp.training.config import default_device
@@ -75,55 +75,12 @@ def leave() -> None:
 
 
 def join_data_parallel(args) -> bool:
-    """``train`` under torchrun with more than one rank: join the group, put this rank's device
+    """``train`` as one of several ranks: join the group, put this rank's device
     in ``args.device`` and return True; otherwise False."""
     if not started_by_torchrun():
         return False
     args.device = join(args.device)
     return True
-
-
-def launch_ranks(args, argv: list[str]) -> int:
-    """``--gpus N``: run the command line ``argv`` (without ``--gpus``) as N ranks under
-    torchrun, one GPU each (N CPU processes with ``--device cpu``); the exit code of
-    :func:`launch`, or 2 after one line when N does not fit the machine."""
-    error = None
-    if started_by_torchrun():
-        error = "torchrun already started the ranks (drop --gpus)"
-    elif args.device != "cpu":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count < args.gpus:
-            error = f"this machine has {count} CUDA GPU(s) (with --device cpu: {args.gpus} CPU processes)"
-    elif args.gpus > (os.cpu_count() or 1):
-        error = f"this machine has {os.cpu_count() or 1} CPU cores, too few for {args.gpus} CPU processes"
-    if error is not None:
-        print(f"ngp-warp: error: --gpus {args.gpus}: {error}", file=sys.stderr)
-        return 2
-    rest, i = [], 0
-    while i < len(argv):  # argv without "--gpus N" / "--gpus=N"
-        if argv[i] == "--gpus":
-            i += 1
-        elif not argv[i].startswith("--gpus="):
-            rest.append(argv[i])
-        i += 1
-    return launch(args.gpus, rest)
-
-
-def launch(n_processes: int, argv: list[str]) -> int:
-    """Run ``python -m ngp_warp.cli *argv`` as ``n_processes`` ranks under torchrun
-    (``torch.distributed.run --standalone``). Returns 0, 2 when every failed rank exited with 2
-    (a user mistake, already reported by the ranks in one line each) or 1."""
-    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
-    from torch.distributed.run import get_args_parser, run
-
-    options = get_args_parser().parse_args(
-        ["--standalone", f"--nproc-per-node={n_processes}", "--module", "ngp_warp.cli", *argv])
-    try:
-        run(options)
-    except ChildFailedError as e:
-        codes = {failure.exitcode for failure in e.failures.values()}
-        return 2 if codes == {2} else 1
-    return 0
 
 
 class GradientReducer:
