@@ -22,9 +22,14 @@ __version__ = "0.1.0"
 def _interrupt_while_loading():
     """Ctrl-C while the ``ngp-warp`` command's modules load ends it as a Ctrl-C later does: one
     line and exit code 130, no traceback. The press is only noted while they load (an import
-    that catches every exception cannot swallow it) and acted on once they have. Any other
-    importer keeps Python's own Ctrl-C."""
-    if _os.path.basename(_sys.argv[0]) not in ("ngp-warp", "ngp-warp.exe"):
+    that catches every exception cannot swallow it) and acted on once they have; of several ranks
+    (``python -m ngp_warp.cli``, as ``--gpus`` and torchrun run them) rank 0 prints the line.
+    Any other importer, or thread, keeps Python's own Ctrl-C."""
+    import threading
+
+    command = (_os.path.basename(_sys.argv[0]) in ("ngp-warp", "ngp-warp.exe")
+               or _sys.argv[0].endswith(_os.path.join("ngp_warp", "cli", "__main__.py")))  # a rank's
+    if not command or threading.current_thread() is not threading.main_thread():
         yield
         return
     import signal
@@ -36,7 +41,8 @@ def _interrupt_while_loading():
     finally:
         signal.signal(signal.SIGINT, previous)
     if pressed:
-        print("ngp-warp: interrupted", file=_sys.stderr)
+        if _os.environ.get("RANK", "0") == "0":
+            print("ngp-warp: interrupted", file=_sys.stderr)
         raise SystemExit(130)
 
 

@@ -1,4 +1,4 @@
-"""ngp-warp fit-many: 3 tiny scenes over 2 gloo ranks (torchrun through --gpus), a rerun that
+"""ngp-warp fit-many: 3 tiny scenes over 2 gloo ranks (through --gpus), a rerun that
 skips them, an interrupted scene resumed, two nodes on one host (one of them killed), and bad
 manifests as one line; two single-GPU nodes where a host has two GPUs."""
 

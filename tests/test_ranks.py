@@ -2,8 +2,10 @@
 (exit codes, a failed rank stopping the rest), and one line for a mistake every rank makes."""
 
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -24,6 +26,8 @@ def test_the_command_line_loads_without_torch_or_warp():
     (["train", "s", "--gpus", "two"], 1, ["train", "s"]),  # not a number: the parser says so
     (["eval", "r", "--gpus", "2"], 1, ["eval", "r"]),  # no --gpus there: the parser says so
     (["train", "s", "--gpus"], 1, ["train", "s", "--gpus"]),
+    (["train", "s", "--gpus", "\u00b2"], 1, ["train", "s"]),  # a digit, not a number
+    (["train", "s", "--gpus", "4", "--gpus=2"], 2, ["train", "s"]),  # the last, as argparse
     (["train", "s"], 1, ["train", "s"]),
 ])
 def test_gpus_is_read_and_left_out_of_the_ranks_command_line(argv, asked, rest):
@@ -49,7 +53,22 @@ def test_the_launch_returns_what_the_ranks_did_and_stops_them_at_a_failure(codes
     assert time.monotonic() - start < 60  # a hanging rank is stopped once the other fails
 
 
-def test_a_mistake_in_the_arguments_is_one_line_from_rank_zero(tmp_path):
+@pytest.mark.parametrize("local_rank, reported", [("0", True), ("1", False)])
+def test_a_mistake_in_the_arguments_is_reported_by_the_first_rank_alone(monkeypatch, capsys, tmp_path, local_rank,
+                                                                          reported):
+    from ngp_warp.cli import main
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", local_rank)
+    monkeypatch.setenv("LOCAL_RANK", local_rank)
+    with pytest.raises(SystemExit) as done:
+        main(["train", str(tmp_path / "scene"), "--out", str(tmp_path / "o"), "--steps", "0"])
+    err = capsys.readouterr().err
+    assert done.value.code == 2
+    assert ("argument --steps: expected a positive int, got '0'" in err) == reported and (err == "") != reported
+
+
+def test_a_mistake_in_the_arguments_is_one_line_under_gpus(tmp_path):
     command = [sys.executable, "-m", "ngp_warp.cli", "train", str(tmp_path / "scene"), "--out", str(tmp_path / "o"),
                "--gpus", "2", "--device", "cpu", "--steps", "0"]
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
@@ -57,6 +76,15 @@ def test_a_mistake_in_the_arguments_is_one_line_from_rank_zero(tmp_path):
     assert done.returncode == 2 and errors == ["ngp-warp train: error: argument --steps: expected a positive int, "
                                                "got '0'"], done.stderr[-2000:]
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_to_the_launch_reaches_every_rank(monkeypatch, sig, code):
+    monkeypatch.setattr(ranks, "GRACE_SECONDS", 20.0)
+    threading.Timer(1.0, os.kill, (os.getpid(), sig)).start()
+    start = time.monotonic()
+    assert ranks.launch(2, ["hang,hang"], command=[sys.executable, "-c", RANK_SCRIPT]) == code
+    assert time.monotonic() - start < 15  # the ranks ended on the signal passed on, not the kill after the grace
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) > 8, reason="starts one process more than this machine has cores")

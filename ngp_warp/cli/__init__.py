@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     if ranks.started_as_rank():
         n = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ["WORLD_SIZE"]))
         if (error := _ranks_do_not_fit(args, n)) is not None:
-            if ranks.rank() == 0:
+            if ranks.reports():
                 print(f"ngp-warp: error: --gpus {n}: {error}", file=sys.stderr)
             return 2
     with _interrupt_while_loading():
@@ -142,20 +142,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ngp-warp: error: {e}", file=sys.stderr)
         return 2
     except Terminated:
-        print("ngp-warp: terminated (SIGTERM)", file=sys.stderr)
+        if ranks.reports():  # of several ranks, the first of each machine
+            print("ngp-warp: terminated (SIGTERM)", file=sys.stderr)
         return SIGTERM_EXIT
     except KeyboardInterrupt:
-        print("ngp-warp: interrupted", file=sys.stderr)
+        if ranks.reports():
+            print("ngp-warp: interrupted", file=sys.stderr)
         return 130
     return 0
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
-    """``parser.parse_args(argv)``; a rank other than 0 exits as the parser does (code 2) but
-    silently: rank 0 reports the mistake every rank makes."""
-    if ranks.rank() == 0:
+    """``parser.parse_args(argv)``; a rank that does not report (:func:`ranks.reports`) exits as
+    the parser does (code 2, or 0 for ``--help``) but silently: another reports what every rank
+    parses alike."""
+    if ranks.reports():
         return parser.parse_args(argv)
-    with contextlib.redirect_stderr(io.StringIO()):
+    with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
         return parser.parse_args(argv)
 
 

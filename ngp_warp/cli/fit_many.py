@@ -284,7 +284,7 @@ def cmd_fit_many(args) -> None:
         raise FitManyError(f"rank(s) {', '.join(map(str, lost))} stopped answering (no heartbeat for "
                            f"{LOST_AFTER_SECONDS:.0f} s: a node died?); the scenes finished are kept, and the same "
                            f"command run again fits the rest")
-    if failed:
+    if failed and is_main_rank():  # rank 0 reports every rank's rows; the others end as it does
         raise FitManyError(f"{len(failed)} of {len(rows)} scenes failed: {', '.join(failed)} (see {out / SUMMARY})")
 
 

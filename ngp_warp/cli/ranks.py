@@ -10,7 +10,7 @@ still go through ``torchrun --nnodes``.
 The ranks check the command line themselves: rank 0 alone reports a mistake in the arguments
 or too few GPUs (one line); a mistake found later (a scene that cannot be read) each rank
 reports. When a rank fails, the others get SIGTERM (rank 0 saves its checkpoint), then SIGKILL
-after :data:`GRACE_SECONDS`.
+after :data:`GRACE_SECONDS`; so do all of them when this process gets SIGTERM (SIGINT for Ctrl-C).
 """
 
 from __future__ import annotations
@@ -31,9 +31,10 @@ def started_as_rank() -> bool:
     return int(os.environ.get("WORLD_SIZE", "1")) > 1
 
 
-def rank() -> int:
-    """This process's rank (0 outside a group of ranks)."""
-    return int(os.environ.get("RANK", "0"))
+def reports() -> bool:
+    """Whether this process reports the mistakes every rank makes: not one of several ranks, or
+    the first rank of its machine (``LOCAL_RANK`` 0)."""
+    return not started_as_rank() or os.environ.get("LOCAL_RANK", "0") == "0"
 
 
 GPUS_FORMS = ("--gpus", "--gpu", "--gp", "--g")  # argparse takes any prefix that names one option
@@ -54,11 +55,12 @@ def ranks_asked(argv: list[str]) -> int:
     ``fit-many`` command line; 1 when absent or not a whole number (the parser reports it)."""
     if not argv or argv[0] not in RANKED_COMMANDS:
         return 1
+    asked = 1
     for i in range(len(argv)):
         value, _ = _gpus_value(argv, i)
         if value is not None:
-            return int(value) if value.isdigit() else 1
-    return 1
+            asked = int(value) if value.isdecimal() and value.isascii() else 1  # the last, as argparse
+    return asked
 
 
 def without_gpus(argv: list[str]) -> list[str]:
@@ -73,6 +75,8 @@ def without_gpus(argv: list[str]) -> list[str]:
 
 
 def _free_port() -> int:
+    """A port free now; rank 0 binds it seconds later, after loading torch (a race torchrun's
+    own free-port choice has too)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -80,22 +84,33 @@ def _free_port() -> int:
 
 def launch(n_ranks: int, argv: list[str], command: list[str] | None = None) -> int:
     """Run ``command`` (default ``python -m ngp_warp.cli``) with ``argv`` as ``n_ranks`` ranks
-    and wait for them. Returns 0 when every rank succeeded, 2 when every rank that failed by
-    itself exited with 2 (a user mistake, reported by the ranks), 130 after Ctrl-C (which the
-    terminal sends to the ranks too), 143 after SIGTERM (passed on to the ranks), else 1."""
+    and wait for them. The ranks run in sessions of their own (as torchrun starts them): this
+    process passes a Ctrl-C or a SIGTERM on to them once. Returns 0 when every rank succeeded,
+    2 when every rank that failed by itself exited with 2 (a user mistake, reported by rank 0),
+    130 after Ctrl-C, 143 after SIGTERM, else 1."""
     command = command or [sys.executable, "-m", "ngp_warp.cli"]
     shared = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": str(n_ranks),
               "LOCAL_WORLD_SIZE": str(n_ranks), "GROUP_RANK": "0",
+              "TORCHELASTIC_USE_AGENT_STORE": "False",  # rank 0 holds the store, also under an outer torchrun
               "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}  # as torchrun sets it
-    ranks = [subprocess.Popen([*command, *argv], env={**os.environ, **shared, "RANK": str(r), "LOCAL_RANK": str(r)})
-             for r in range(n_ranks)]
+    ranks: list[subprocess.Popen] = []
     terminated = []
     previous = signal.signal(signal.SIGTERM, lambda *_: terminated.append(True))
     try:
+        for r in range(n_ranks):
+            ranks.append(subprocess.Popen([*command, *argv], start_new_session=True,
+                                          env={**os.environ, **shared, "RANK": str(r), "LOCAL_RANK": str(r)}))
         failed = _wait(ranks, terminated)
-    except KeyboardInterrupt:  # the terminal sent it to the ranks too: they save and stop
-        _stop(ranks, None)
+    except KeyboardInterrupt:
+        previous_int = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C waits for the ranks' saves
+        try:
+            _stop(ranks, signal.SIGINT)
+        finally:
+            signal.signal(signal.SIGINT, previous_int)
         return 130
+    except BaseException:
+        _stop(ranks, signal.SIGTERM)
+        raise
     finally:
         signal.signal(signal.SIGTERM, previous)
     if terminated:
@@ -117,13 +132,12 @@ def _wait(ranks: list[subprocess.Popen], terminated: list) -> list[int]:
         time.sleep(0.05)
 
 
-def _stop(ranks: list[subprocess.Popen], sig: signal.Signals | None) -> None:
-    """Send ``sig`` (None: none) to the ranks still running, wait :data:`GRACE_SECONDS` for them
-    and kill those left."""
+def _stop(ranks: list[subprocess.Popen], sig: signal.Signals) -> None:
+    """Send ``sig`` to the ranks still running, wait :data:`GRACE_SECONDS` for them and kill
+    those left."""
     running = [p for p in ranks if p.poll() is None]
-    if sig is not None:
-        for p in running:
-            p.send_signal(sig)
+    for p in running:
+        p.send_signal(sig)
     deadline = time.monotonic() + GRACE_SECONDS
     for p in running:
         try:
