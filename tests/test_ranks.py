@@ -81,9 +81,14 @@ def test_a_mistake_in_the_arguments_is_one_line_under_gpus(tmp_path):
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_signal_to_the_launch_reaches_every_rank(monkeypatch, sig, code):
     monkeypatch.setattr(ranks, "GRACE_SECONDS", 20.0)
-    threading.Timer(1.0, os.kill, (os.getpid(), sig)).start()
+    timer = threading.Timer(1.0, os.kill, (os.getpid(), sig))
     start = time.monotonic()
-    assert ranks.launch(2, ["hang,hang"], command=[sys.executable, "-c", RANK_SCRIPT]) == code
+    timer.start()
+    try:
+        returned = ranks.launch(2, ["hang,hang"], command=[sys.executable, "-c", RANK_SCRIPT])
+    finally:
+        timer.cancel()  # never a signal to this process after the launch has ended
+    assert returned == code
     assert time.monotonic() - start < 15  # the ranks ended on the signal passed on, not the kill after the grace
 
 
