@@ -62,7 +62,6 @@ init()  # on import: every module that launches kernels imports this one
 
 def cuda_available() -> bool:
     """True when both torch and Warp can use a CUDA device."""
-    init()
     return torch.cuda.is_available() and wp.get_cuda_device_count() > 0
 
 

@@ -12,6 +12,7 @@ import sys
 
 from ngp_warp import _interrupt_while_loading
 from ngp_warp.cli import ranks
+from ngp_warp.training import rank_env
 from ngp_warp.cli.common import CHECKPOINT, MAX_DOWNSCALE, UserError, folder_name, positive, seed_number
 from ngp_warp.wall_clock import command_started
 
@@ -110,23 +111,23 @@ def main(argv: list[str] | None = None) -> int:
     started = command_started()
     argv = sys.argv[1:] if argv is None else list(argv)
     asked = ranks.ranks_asked(argv)
-    if 1 < asked <= (os.cpu_count() or 1) and not ranks.started_as_rank():  # before anything heavy loads
+    if 1 < asked <= (os.cpu_count() or 1) and not rank_env.started_as_rank():  # before anything heavy loads
         return ranks.launch(asked, ranks.without_gpus(argv))
     with _interrupt_while_loading():
         parser = _parser()
     args = _parse(parser, argv)
     args.started = started
     if getattr(args, "gpus", 1) > 1:
-        if ranks.started_as_rank():
+        if rank_env.started_as_rank():
             error = "torchrun already started the ranks (drop --gpus)"
         elif (error := _ranks_do_not_fit(args, args.gpus)) is None:  # more GPUs than cores
             return ranks.launch(args.gpus, ranks.without_gpus(argv))
         print(f"ngp-warp: error: --gpus {args.gpus}: {error}", file=sys.stderr)
         return 2
-    if ranks.started_as_rank():
+    if rank_env.started_as_rank():
         n = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ["WORLD_SIZE"]))
         if (error := _ranks_do_not_fit(args, n)) is not None:
-            if ranks.reports():
+            if rank_env.reports():
                 print(f"ngp-warp: error: --gpus {n}: {error}", file=sys.stderr)
             return 2
     with _interrupt_while_loading():
@@ -142,21 +143,21 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ngp-warp: error: {e}", file=sys.stderr)
         return 2
     except Terminated:
-        if ranks.reports():  # of several ranks, the first of each machine
+        if rank_env.reports():  # of several ranks, the first of each machine
             print("ngp-warp: terminated (SIGTERM)", file=sys.stderr)
         return SIGTERM_EXIT
     except KeyboardInterrupt:
-        if ranks.reports():
+        if rank_env.reports():
             print("ngp-warp: interrupted", file=sys.stderr)
         return 130
     return 0
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
-    """``parser.parse_args(argv)``; a rank that does not report (:func:`ranks.reports`) exits as
-    the parser does (code 2, or 0 for ``--help``) but silently: another reports what every rank
-    parses alike."""
-    if ranks.reports():
+    """``parser.parse_args(argv)``; a rank that does not report
+    (:func:`~ngp_warp.training.rank_env.reports`) exits as the parser does (code 2, or 0 for
+    ``--help``) but silently: another reports what every rank parses alike."""
+    if rank_env.reports():
         return parser.parse_args(argv)
     with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
         return parser.parse_args(argv)

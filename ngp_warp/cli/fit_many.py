@@ -244,7 +244,8 @@ def _all_ranks(rows: list[dict], busy: float) -> tuple[list[dict], list[float | 
 
 def cmd_fit_many(args) -> None:
     from ngp_warp.atomic import atomic_write_text
-    from ngp_warp.training.distributed import FIT_MANY_TIMEOUT, is_main_rank, join, rank_and_size, started_by_torchrun
+    from ngp_warp.training.distributed import FIT_MANY_TIMEOUT, is_main_rank, join, rank_and_size
+    from ngp_warp.training.rank_env import started_as_rank
 
     scenes = read_manifest(args.manifest)  # bad input: one line before anything is written
     try:
@@ -254,7 +255,7 @@ def cmd_fit_many(args) -> None:
         out = writable_dir(Path(args.out))
     except UserError as e:
         raise FitManyError(str(e)) from None
-    if started_by_torchrun():  # coordination only: gloo, also between GPUs
+    if started_as_rank():  # coordination only: gloo, also between GPUs
         args.device = join(args.device, backend="gloo", timeout=FIT_MANY_TIMEOUT)
     rank, world = rank_and_size()
     args.quiet = args.quiet or rank != 0  # one rank's progress bars on the terminal

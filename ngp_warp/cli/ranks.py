@@ -26,17 +26,6 @@ GRACE_SECONDS = 30.0  # after SIGTERM, before SIGKILL
 RANKED_COMMANDS = ("train", "fit-many")  # the subcommands with --gpus
 
 
-def started_as_rank() -> bool:
-    """Whether this process is one of several ranks (``WORLD_SIZE`` > 1: ``--gpus`` or torchrun)."""
-    return int(os.environ.get("WORLD_SIZE", "1")) > 1
-
-
-def reports() -> bool:
-    """Whether this process reports the mistakes every rank makes: not one of several ranks, or
-    the first rank of its machine (``LOCAL_RANK`` 0)."""
-    return not started_as_rank() or os.environ.get("LOCAL_RANK", "0") == "0"
-
-
 GPUS_FORMS = ("--gpus", "--gpu", "--gp", "--g")  # argparse takes any prefix that names one option
 
 

@@ -104,7 +104,6 @@ def marching_cubes(field: torch.Tensor, threshold: float, box: list[float]) -> t
         where ``field < threshold`` (outside, for a density).
     """
     device = _wp.device_of(field)
-    _wp.init()
     with wp.ScopedStream(_wp.current_stream(device)) if device != "cpu" else contextlib.nullcontext():
         verts, tris = wp.geometry.IsoSurfaceMarchingCubes.extract(
             wp.from_torch(field.contiguous(), requires_grad=False), float(threshold),

@@ -28,6 +28,7 @@ import sys
 import torch
 import torch.distributed as dist
 
+from ngp_warp.training.rank_env import started_as_rank
 from ngp_warp.training.train_step import HostCopy
 from ngp_warp.training.trainer import READOUT_EVERY, Trainer
 
@@ -44,11 +45,6 @@ def rank_and_size() -> tuple[int, int]:
 def is_main_rank() -> bool:
     """Whether this process shows progress and writes outputs (rank 0, or the only process)."""
     return rank_and_size()[0] == 0
-
-
-def started_by_torchrun() -> bool:
-    """Whether ``--gpus`` or torchrun started this process as one of several ranks (WORLD_SIZE > 1)."""
-    return int(os.environ.get("WORLD_SIZE", "1")) > 1
 
 
 def join(device: str, backend: str | None = None, timeout: datetime.timedelta | None = None) -> str:
@@ -77,7 +73,7 @@ def leave() -> None:
 def join_data_parallel(args) -> bool:
     """``train`` as one of several ranks: join the group, put this rank's device
     in ``args.device`` and return True; otherwise False."""
-    if not started_by_torchrun():
+    if not started_as_rank():
         return False
     args.device = join(args.device)
     return True
