@@ -1,9 +1,11 @@
 """Smoke tests of the ngp-warp command, including its one-line errors on bad input."""
 
 import json
+import os
 import shutil
 import signal
 import subprocess
+import sys
 import time
 
 import imageio.v3 as iio
@@ -238,3 +240,20 @@ def test_ctrl_c_while_the_modules_load_is_one_line(after):
     _, err = command.communicate(timeout=120)
     assert command.returncode == 130 and err.strip().splitlines()[-1] == "ngp-warp: interrupted", err
     assert "Traceback" not in err
+
+
+def test_the_program_ends_with_its_output_flushed_and_its_exit_code(tmp_path):
+    scene = write_demo_scene(tmp_path / "demo", width=16, height=16, n_train=6, n_test=1, supersample=1)
+    program = [sys.executable, "-m", "ngp_warp.cli"]  # as the ngp-warp script: ngp_warp.cli.run
+    buffered = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # output to a pipe waits in a buffer
+    done = subprocess.run([*program, "train", str(scene), "--out", str(tmp_path / "run"), "--steps", "2",
+                           "--device", "cpu", "--no-video", "--quiet"], capture_output=True, text=True, timeout=600,
+                          env=buffered)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.rstrip().splitlines()[-1].startswith("wrote ")  # its last line, flushed before the end
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["steps"] == 2
+    assert (tmp_path / "run" / "checkpoint.pt").stat().st_size > 0
+    mistake = subprocess.run([*program, "eval", str(tmp_path / "no run")], capture_output=True, text=True, timeout=300,
+                             env=buffered)
+    assert mistake.returncode == 2 and mistake.stdout == ""
+    assert mistake.stderr.startswith("ngp-warp: error: ") and mistake.stderr.count("\n") == 1, mistake.stderr

@@ -312,3 +312,42 @@ def test_appearance_code_mistakes_are_refused(trainer, coded_model):
         trainer.render_image(c2w, intr, W, H, other_codes=(None,))
     with pytest.raises(ValueError, match=r"\[4\] float"):
         render_view(coded_model, c2w, intr, W, H, other_codes=(torch.zeros(3),))
+
+
+@pytest.mark.parametrize("lens, coded", [("pinhole", False), ("opencv", False), ("fisheye", False),
+                                         ("pinhole", True)])
+def test_cameras_rendered_together_equal_each_alone(trainer, coded_model, lens, coded):
+    _, intr = camera(trainer)
+    cameras = trainer.scene.train.c2w[[0, 6, 0]]  # two views of one size from opposite sides, and the first again
+    intrinsics = torch.stack([intr, intr * 1.1, intr])
+    distortion = None if lens == "pinhole" else torch.tensor([[0.05, -0.02, 0.01, 0.004, 0.0, 0.0],
+                                                              [-0.1, 0.02, 0.0, 0.0, 1e-3, -2e-3],
+                                                              [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    model = coded_model if coded else trainer.model
+    codes = dict(appearance_code=torch.tensor([10.0, -10, 5, 0]), other_codes=(None,)) if coded else {}
+    together = render_view(model, cameras, intrinsics, W, H, distortion=distortion, fisheye=lens == "fisheye",
+                           background=0.5, supersample=2, **codes)
+    assert together["rgb"].shape == (3, H, W, 3) and together["depth"].shape == together["opacity"].shape == (3, H, W)
+    for k in range(3):
+        alone = render_view(model, cameras[k], intrinsics[k], W, H, background=0.5, supersample=2,
+                            distortion=None if distortion is None else distortion[k], fisheye=lens == "fisheye",
+                            **codes)
+        for key in ("rgb", "depth", "opacity"):
+            torch.testing.assert_close(together[key][k], alone[key], rtol=0, atol=1e-6)
+        if coded:
+            assert together["other_rgb"].shape == (1, 3, H, W, 3)
+            torch.testing.assert_close(together["other_rgb"][:, k], alone["other_rgb"], rtol=0, atol=1e-6)
+    if not coded:
+        assert (together["rgb"][0] - together["rgb"][1]).abs().max() > 1e-3  # two different views (past the tolerance)
+
+
+@pytest.mark.parametrize("intrinsics, distortion, message", [
+    (torch.zeros(4), None, r"intrinsics must be a \[2, 4\]"),
+    (torch.zeros(2, 4), torch.zeros(6), r"distortion must be None or a \[2, 6\]"),
+])
+def test_a_batch_of_cameras_must_agree(trainer, intrinsics, distortion, message):
+    c2w, _ = camera(trainer)
+    with pytest.raises(ValueError, match=message):
+        render_view(trainer.model, torch.stack([c2w, c2w]), intrinsics, W, H, distortion=distortion)
+    with pytest.raises(ValueError, match="no views"):
+        render_view(trainer.model, c2w[None, :0].reshape(0, 3, 4), torch.zeros(0, 4), W, H)

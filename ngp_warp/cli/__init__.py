@@ -7,8 +7,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import logging
 import os
 import sys
+from typing import NoReturn
 
 from ngp_warp import _interrupt_while_loading
 from ngp_warp.cli import ranks
@@ -16,7 +18,7 @@ from ngp_warp.training import rank_env
 from ngp_warp.cli.common import CHECKPOINT, MAX_DOWNSCALE, UserError, folder_name, positive, seed_number
 from ngp_warp.wall_clock import command_started
 
-__all__ = ["CHECKPOINT", "UserError", "main"]
+__all__ = ["CHECKPOINT", "UserError", "main", "run"]
 
 
 def _common(sp: argparse.ArgumentParser) -> None:
@@ -151,6 +153,19 @@ def main(argv: list[str] | None = None) -> int:
             print("ngp-warp: interrupted", file=sys.stderr)
         return 130
     return 0
+
+
+def run() -> NoReturn:
+    """The ``ngp-warp`` program (and ``python -m ngp_warp.cli``): :func:`main`, then the process
+    ends at once, its output flushed. Every file the command writes is closed and its threads
+    joined when :func:`main` returns; what the interpreter's own teardown would add (freeing
+    torch, CUDA and Warp: about a second on a GPU host, 0.4–0.7 s on 2 CPU cores) serves
+    nothing. An exception out of :func:`main` (a bug) still ends the usual way, with its traceback."""
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    logging.shutdown()
+    os._exit(code)
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
