@@ -5,8 +5,7 @@
 Loads the run's checkpoint and times, over its first ``--views`` test views (every phase adds to
 the one above it; the device is synchronised at the end of each pass, not per view):
 
-- ``render``: the renders alone (and the ground truth composited, the appearance fit included),
-  one view a call, and as the evaluation renders views without codes of their own, four a call;
+- ``render``: the renders alone (and the ground truth composited, the appearance fit included);
 - ``+ PSNR``: and each view's PSNR read on the host;
 - ``+ SSIM``: and SSIM;
 - ``+ images to host``: and the render and its depth map as uint8 on the host;
@@ -34,20 +33,18 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from ngp_warp.outputs.evaluate import (EVAL_VIEWS_TOGETHER, composite_on, depth_to_uint8, evaluate, iter_test_renders,
-                                       to_uint8)
+from ngp_warp.outputs.evaluate import composite_on, depth_to_uint8, evaluate, iter_test_renders, to_uint8
 from ngp_warp.outputs.metrics import psnr, ssim
 from ngp_warp.training.appearance_fit import fit_appearance_code, nearest_training_code
 from ngp_warp.training.checkpoint import load_trainer
 
 
-def timed_pass(trainer, views: int, work, views_per_render: int = 1) -> float:
-    """ms per view of one pass over ``views`` test views, ``work(out, gt)`` done on each, the
-    views rendered ``views_per_render`` to a call."""
+def timed_pass(trainer, views: int, work) -> float:
+    """ms per view of one pass over ``views`` test views, ``work(out, gt)`` done on each."""
     sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
     sync()
     start = time.perf_counter()
-    for _, out, gt in itertools.islice(iter_test_renders(trainer, views_per_render=views_per_render), views):
+    for _, out, gt in itertools.islice(iter_test_renders(trainer), views):
         work(out, gt)
     sync()
     return (time.perf_counter() - start) / views * 1e3
@@ -99,8 +96,6 @@ def main() -> None:
     }
     timed_pass(trainer, 2, passes["render"])  # kernels loaded
     rows = [(name, timed_pass(trainer, views, work)) for name, work in passes.items()]
-    rows.insert(1, (f"render, {EVAL_VIEWS_TOGETHER} views a call",
-                    timed_pass(trainer, views, passes["render"], EVAL_VIEWS_TOGETHER)))
     with tempfile.TemporaryDirectory() as folder:
         start = time.perf_counter()
         evaluate(trainer, Path(folder), show_progress=False)
@@ -114,13 +109,11 @@ def main() -> None:
     for name, ms in rows:
         print(f"| {name} | {ms:.1f} | {ms * len(split.names) / 1e3:.1f} |")
     if trainer.device.type == "cuda":
-        for together in (EVAL_VIEWS_TOGETHER, 1):
-            with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-                wall = timed_pass(trainer, 12, passes["render"], together)
-            events = prof.key_averages()
-            busy = sum(e.self_device_time_total for e in events if e.device_type == DeviceType.CUDA) / 12 / 1e3
-            print(f"render under the profiler, {together} view(s) a call: {wall:.1f} ms per view, "
-                  f"device busy {busy:.1f} ms per view")
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            wall = timed_pass(trainer, 10, passes["render"])
+        events = prof.key_averages()
+        busy = sum(e.self_device_time_total for e in events if e.device_type == DeviceType.CUDA) / 10 / 1e3
+        print(f"render under the profiler: {wall:.1f} ms per view, device busy {busy:.1f} ms per view")
         print(events.table(sort_by="cuda_time_total", row_limit=12, max_name_column_width=60))
 
 

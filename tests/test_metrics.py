@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ngp_warp.outputs.metrics import psnr, psnr_images, ssim, ssim_images
+from ngp_warp.outputs.metrics import psnr, ssim
 
 
 def _images(h=32, w=40, c=3, seed=0):
@@ -121,18 +121,3 @@ def test_metrics_validate_inputs():
             ssim(*bad)
     with pytest.raises(ValueError, match="at least 11x11"):
         ssim(x[:10], y[:10])
-
-
-def test_images_scored_together_equal_each_alone():
-    pairs = [_images(seed=seed) for seed in range(3)]
-    pairs[2] = (pairs[2][0], pairs[2][0].clone())  # identical: PSNR inf
-    pred, gt = torch.stack([p for p, _ in pairs]), torch.stack([g for _, g in pairs])
-    assert psnr_images(pred, gt).dtype == torch.float64
-    assert psnr_images(pred, gt).tolist() == pytest.approx([psnr(p, g) for p, g in pairs], abs=1e-9)
-    assert math.isinf(psnr_images(pred, gt)[2])
-    assert ssim_images(pred, gt).tolist() == pytest.approx([ssim(p, g) for p, g in pairs], abs=1e-12)
-    assert len(set(psnr_images(pred, gt)[:2].tolist())) == 2  # the pairs differ
-    with pytest.raises(ValueError, match=r"\[B, H, W, C\]"):
-        psnr_images(pred[0], gt[0])
-    with pytest.raises(ValueError, match="at least 11x11"):
-        ssim_images(pred[:, :10], gt[:, :10])

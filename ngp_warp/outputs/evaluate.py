@@ -18,7 +18,7 @@ from ngp_warp.training.appearance_fit import (FIT_ITERATIONS, fit_appearance_and
                                      nearest_training_code, right_half)
 from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.outputs.lpips import lpips_or_reason, lpips_summary
-from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr_images, ssim_images
+from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr, ssim
 from ngp_warp.training.trainer import Trainer
 
 
@@ -37,13 +37,12 @@ def to_uint8(img: torch.Tensor) -> np.ndarray:
 
 
 def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
-    """Expected depth normalised by opacity, near = bright, empty = black: [..., H, W] float32
-    each → [..., H, W] uint8, each image scaled to its own range."""
+    """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8."""
     d = depth / opacity.clamp_min(1e-6)
     mask = opacity > 0.5
     # the range of the opaque pixels without reading it on the host (no pixel opaque: all black)
-    lo = torch.where(mask, d, torch.inf).amin(dim=(-2, -1), keepdim=True)
-    hi = torch.where(mask, d, -torch.inf).amax(dim=(-2, -1), keepdim=True)
+    lo = torch.where(mask, d, torch.inf).amin()
+    hi = torch.where(mask, d, -torch.inf).amax()
     d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
@@ -75,7 +74,7 @@ class BackgroundWrites:
 
 
 def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1, fit_appearance: bool = False,
-                      nearest_code: bool = False, whole_codes: bool = False, views_per_render: int = 1):
+                      nearest_code: bool = False, whole_codes: bool = False):
     """Yield ``(name, render dict, ground truth [H, W, 3])`` for every ``every``-th view of
     ``split`` (default: the test split), rendered (``spp`` as in ``Trainer.render_image``) and
     composited on white; where the field learns the background (``Trainer.black_background``:
@@ -91,17 +90,11 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     view's pose as well (:func:`~ngp_warp.training.appearance_fit.fit_appearance_and_pose`).
     With ``fit_appearance`` and ``whole_codes``, the render dict also holds ``other_rgb`` [2, H,
     W, 3]: the view (at its recorded pose) with the nearest training camera's code and with the
-    mean code, coloured from the same samples as the fitted code's where the pose is the same.
-    Where no view has a code of its own (no fit, no nearest code), ``views_per_render`` views are
-    rendered in one call (:func:`~ngp_warp.outputs.renderer.render_view` with a batch of cameras),
-    each view's dict then holding its ``rgb``, ``depth`` and ``opacity`` alone."""
+    mean code, coloured from the same samples as the fitted code's where the pose is the same."""
     split = trainer.scene.test if split is None else split
     white = torch.ones(3, device=trainer.device)
     background = trainer.view_background
     fit = fit_appearance and trainer.field.appearance is not None
-    if views_per_render > 1 and not fit and not (nearest_code and trainer.field.appearance is not None):
-        yield from _views_together(trainer, split, range(0, len(split.names), every), views_per_render, spp)
-        return
     for i in range(0, len(split.names), every):
         camera = split.camera(i)
         gt = composite_on(split.images[i].to(trainer.device), white)
@@ -126,74 +119,27 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
         yield split.names[i], out, gt
 
 
-def _views_together(trainer: Trainer, split, indices: range, views_per_render: int, spp: int):
-    """:func:`iter_test_renders` of views without codes of their own, ``views_per_render`` to a render."""
-    white = torch.ones(3, device=trainer.device)
-    for lo in range(0, len(indices), views_per_render):
-        group = list(indices[lo:lo + views_per_render])
-        out = trainer.render_image(split.c2w[group], split.intrinsics[group], split.width, split.height,
-                                   distortion=split.distortion[group] if split.has_distortion else None,
-                                   fisheye=split.fisheye, background=trainer.view_background, spp=spp)
-        for k, i in enumerate(group):
-            view = {key: out[key][k] for key in ("rgb", "depth", "opacity")}
-            yield split.names[i], view, composite_on(split.images[i].to(trainer.device), white)
+def _scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[dict, str]:
+    """PSNR, SSIM (None below an 11-pixel window) and LPIPS (None and the reason when it cannot
+    be computed) of rgb against gt ([H, W, 3] float32 in [0, 1])."""
+    s = ssim(rgb, gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
+    lpips, lpips_note = lpips_or_reason(rgb, gt)
+    return {"psnr": psnr(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
 
 
 NEAREST_CODE_KEYS = ("psnr_nearest_code", "psnr_nearest_code_left", "psnr_nearest_code_right")
 
 
-def _whole_and_halves(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """PSNR [B] float64 of B renders against their truths ([B, H, W, 3] float32 each), on the
-    device: whole images, left halves (columns < W // 2), right halves (:func:`right_half`)."""
-    half = gt.shape[2] // 2
-    return (psnr_images(rgb, gt), psnr_images(rgb[:, :, :half], gt[:, :, :half]),
-            psnr_images(right_half(rgb), right_half(gt)))
-
-
 def psnr_whole_and_halves(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[float, float, float]:
     """PSNR of ``rgb`` against ``gt`` ([H, W, 3] float32 each): the whole image, its left half
     (columns < W // 2) and its right half (:func:`right_half`)."""
-    return tuple(torch.cat(_whole_and_halves(rgb[None], gt[None])).tolist())
+    half = gt.shape[1] // 2
+    return psnr(rgb, gt), psnr(rgb[:, :half], gt[:, :half]), psnr(right_half(rgb), right_half(gt))
 
 
-def _score_views(outs: list[dict], gts: list[torch.Tensor], fitted: bool) -> tuple[list[dict], str]:
-    """Each view's scores, read from the device together: ``psnr``, ``ssim`` (None below an
-    11-pixel window) and ``lpips`` (None when it cannot be computed; the returned note says why)
-    of its render (``rgb`` [H, W, 3] of each render dict in ``outs``) against its truth ([H, W, 3]
-    float32 in [0, 1], one size for all); with codes fitted on the left halves (``fitted``) on
-    the right halves, and with the whole images' ``psnr_mean_code`` and the nearest code's
-    scores (:data:`NEAREST_CODE_KEYS`) of each render's ``other_rgb``."""
-    truth, rgb = torch.stack(gts), torch.stack([out["rgb"] for out in outs])
-    scored, scored_truth = (right_half(rgb), right_half(truth)) if fitted else (rgb, truth)
-    columns = {"psnr": psnr_images(scored, scored_truth)}
-    if min(truth.shape[1:3]) >= SSIM_WINDOW:
-        columns["ssim"] = ssim_images(scored, scored_truth)
-    if fitted:
-        nearest, mean = torch.stack([out["other_rgb"] for out in outs]).unbind(1)
-        columns["psnr_mean_code"] = psnr_images(mean, truth)
-        columns.update(zip(NEAREST_CODE_KEYS, _whole_and_halves(nearest, truth)))
-    read = dict(zip(columns, torch.stack(list(columns.values())).tolist()))  # one wait for the device
-    views, note = [], ""
-    for k in range(len(outs)):
-        lpips, note = lpips_or_reason(scored[k], scored_truth[k])
-        views.append({"psnr": read["psnr"][k], "ssim": read["ssim"][k] if "ssim" in read else None, "lpips": lpips,
-                      **{key: values[k] for key, values in read.items() if key not in ("psnr", "ssim")}})
-    return views, note
-
-
-def _groups(items, size: int):
-    """Lists of ``size`` consecutive items (the last may be shorter)."""
-    group = []
-    for item in items:
-        group.append(item)
-        if len(group) == size:
-            yield group
-            group = []
-    if group:
-        yield group
-
-
-EVAL_VIEWS_TOGETHER = 4  # test views rendered and scored at a time: fewer launches and host waits a view
+def _nearest_code_scores(rgb: torch.Tensor, gt: torch.Tensor) -> dict:
+    """:func:`psnr_whole_and_halves` of a view rendered with the nearest training camera's code."""
+    return dict(zip(NEAREST_CODE_KEYS, psnr_whole_and_halves(rgb, gt)))
 
 
 def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
@@ -208,23 +154,25 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     metrics.json's ``appearance`` says so. renders/ holds the fitted code's whole images."""
     out_dir = Path(out_dir)
     fitted = trainer.field.appearance is not None
-    views = iter_test_renders(trainer, fit_appearance=fitted, whole_codes=True, views_per_render=EVAL_VIEWS_TOGETHER)
+    views = iter_test_renders(trainer, fit_appearance=fitted, whole_codes=True)
     per_image = []
     bar = progress(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths, \
             BackgroundWrites() as writes:
-        for group in _groups(views, EVAL_VIEWS_TOGETHER):
-            names, outs, gts = zip(*group)
-            scores, lpips_note = _score_views(outs, gts, fitted)
-            images = to_uint8(torch.stack([out["rgb"] for out in outs]))
-            depth = depth_to_uint8(torch.stack([out["depth"] for out in outs]),
-                                   torch.stack([out["opacity"] for out in outs]))
-            for name, view_scores, image, view_depth in zip(names, scores, images, depth):
-                per_image.append({"image": name, **view_scores})
-                writes.submit(iio.imwrite, renders / f"{Path(name).stem}.png", image)
-                writes.submit(iio.imwrite, depths / f"{Path(name).stem}.png", view_depth)
-            bar.set_postfix(psnr=f"{scores[-1]['psnr']:.2f}", refresh=False)
-            bar.update(len(group))
+        for name, out, gt in views:
+            stem = Path(name).stem
+            if fitted:
+                scores, lpips_note = _scores(right_half(out["rgb"]), right_half(gt))
+                nearest, mean = out["other_rgb"]
+                scores["psnr_mean_code"] = psnr(mean, gt)
+                scores.update(_nearest_code_scores(nearest, gt))
+            else:
+                scores, lpips_note = _scores(out["rgb"], gt)
+            per_image.append({"image": name, **scores})
+            writes.submit(iio.imwrite, renders / f"{stem}.png", to_uint8(out["rgb"]))
+            writes.submit(iio.imwrite, depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
+            bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
+            bar.update()
         bar.close()
     posed = " and pose" if trainer.cameras is not None else ""
     appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations), scored on "

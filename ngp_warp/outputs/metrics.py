@@ -14,21 +14,20 @@ SSIM_K1 = 0.01
 SSIM_K2 = 0.03
 
 
-def _check(pred: torch.Tensor, gt: torch.Tensor, min_size: int = 1, batched: bool = False) -> None:
+def _check(pred: torch.Tensor, gt: torch.Tensor, min_size: int = 1) -> None:
     for name, t in (("pred", pred), ("gt", gt)):
         if not isinstance(t, torch.Tensor):
             raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
-        if t.dim() != 3 + batched:
-            shape = "[B, H, W, C]" if batched else "[H, W, C]"
-            raise ValueError(f"{name} must have shape {shape}, got {list(t.shape)}")
+        if t.dim() != 3:
+            raise ValueError(f"{name} must have shape [H, W, C], got {list(t.shape)}")
         if not t.is_floating_point():
             raise ValueError(f"{name} must be a float image in [0, 1], got {t.dtype}")
     if pred.shape != gt.shape:
         raise ValueError(f"pred and gt differ in shape: {list(pred.shape)} vs {list(gt.shape)}")
     if pred.device != gt.device:
         raise ValueError(f"pred is on {pred.device} but gt is on {gt.device}")
-    if min(pred.shape[-3:-1]) < min_size:
-        raise ValueError(f"images must be at least {min_size}x{min_size} pixels, got {list(pred.shape[-3:-1])}")
+    if min(pred.shape[:2]) < min_size:
+        raise ValueError(f"images must be at least {min_size}x{min_size} pixels, got {list(pred.shape[:2])}")
 
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
@@ -41,19 +40,8 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
         \\mathrm{PSNR} = -10 \\log_{10} \\frac{1}{HWC} \\sum (\\mathrm{pred} - \\mathrm{gt})^2
     """
     _check(pred, gt)
-    return float(_psnr(pred, gt))
-
-
-def psnr_images(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """:func:`psnr` of each of B images, left on their device (read them together):
-    [B, H, W, C] float images in [0, 1] → [B] float64."""
-    _check(pred, gt, batched=True)
-    return _psnr(pred, gt)
-
-
-def _psnr(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    mse = ((pred.double() - gt.double()) ** 2).mean(dim=(-3, -2, -1))
-    return -10.0 * torch.log10(mse)  # log10(0) = -inf: identical images score inf
+    mse = float(((pred.double() - gt.double()) ** 2).mean())
+    return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
 
 
 @functools.lru_cache(maxsize=None)  # one per device, made once
@@ -100,20 +88,8 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor) -> float:
     with means and (co)variances taken under the Gaussian window.
     """
     _check(pred, gt, SSIM_WINDOW)
-    return float(_ssim(pred[None], gt[None])[0])
-
-
-def ssim_images(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """:func:`ssim` of each of B images, left on their device (read them together):
-    [B, H, W, C] float images in [0, 1], H, W >= 11 → [B] float64."""
-    _check(pred, gt, SSIM_WINDOW, batched=True)
-    return _ssim(pred, gt)
-
-
-def _ssim(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    n, height, width, channels = pred.shape
-    x = pred.double().permute(0, 3, 1, 2).reshape(n * channels, height, width)  # [B C, H, W]
-    y = gt.double().permute(0, 3, 1, 2).reshape(n * channels, height, width)
+    x = pred.double().permute(2, 0, 1)  # [C, H, W]
+    y = gt.double().permute(2, 0, 1)
     # the five blurred images at once, one pass per axis of the separable window
     blurred = _blur(torch.cat([x, y, x * x, y * y, x * y]), shifted=x.is_cuda)
     mu_x, mu_y, xx, yy, xy = blurred.chunk(5)
@@ -122,4 +98,4 @@ def _ssim(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     cov = xy - mu_x * mu_y
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-    return s.view(n, -1).mean(1)
+    return float(s.mean())

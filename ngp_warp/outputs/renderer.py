@@ -103,40 +103,19 @@ def subpixel_rays(c2w: torch.Tensor, intrinsics: torch.Tensor, distortion: torch
     return tuple(torch.cat(r) for r in zip(*rays)) if len(rays) > 1 else rays[0]
 
 
-def _check_arguments(c2w, intrinsics, distortion, width: int, height: int, spp: int, supersample: int,
-                     fisheye: bool, chunk, first_round) -> tuple[int, ...]:
-    """Check :func:`render_view`'s arguments: one camera ([3, 4] c2w, [4] intrinsics, [6]
-    distortion) or B of them (a leading B on each). Returns the batch shape, () or (B,)."""
-    batch = tuple(c2w.shape[:1]) if isinstance(c2w, torch.Tensor) and c2w.dim() == 3 else ()
-    if batch == (0,):
-        raise ValueError("c2w holds no views ([0, 3, 4])")
-    for name, t, shape in (("c2w", c2w, (*batch, 3, 4)), ("intrinsics", intrinsics, (*batch, 4))):
+def _check_camera(c2w, intrinsics, distortion, width: int, height: int, spp: int, supersample: int,
+                  fisheye: bool) -> None:
+    for name, t, shape in (("c2w", c2w, (3, 4)), ("intrinsics", intrinsics, (4,))):
         if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape:
             raise ValueError(f"{name} must be a {list(shape)} tensor, got {getattr(t, 'shape', type(t).__name__)}")
-    if distortion is not None and (not isinstance(distortion, torch.Tensor) or tuple(distortion.shape) != (*batch, 6)):
-        raise ValueError(f"distortion must be None or a {list((*batch, 6))} tensor (k1 k2 k3 k4 p1 p2), "
+    if distortion is not None and (not isinstance(distortion, torch.Tensor) or tuple(distortion.shape) != (6,)):
+        raise ValueError(f"distortion must be None or a [6] tensor (k1 k2 k3 k4 p1 p2), "
                          f"got {getattr(distortion, 'shape', type(distortion).__name__)}")
     if fisheye and distortion is None:
         raise ValueError("a fisheye view needs its distortion (zeros for the plain equidistant lens)")
     for name, value in (("width", width), ("height", height), ("spp", spp), ("supersample", supersample)):
         if not (isinstance(value, int) and value >= 1):
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    for name, value in (("chunk", chunk), ("first_round", None if first_round == "auto" else first_round)):
-        if value is not None and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-            raise ValueError(f"{name} must be None or a positive integer{', or auto' * (name == 'first_round')}, "
-                             f"got {value!r}")
-    return batch
-
-
-def _views_rays(c2w: torch.Tensor, intrinsics: torch.Tensor, distortion: torch.Tensor | None, width: int,
-                height: int, device: torch.device, fisheye: bool,
-                supersample: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`subpixel_rays` of B cameras ([B, 3, 4] c2w, [B, 4] intrinsics, [B, 6] or None
-    distortion) one after the other: origins and directions [B × supersample² × H × W, 3]."""
-    lenses = [None] * c2w.shape[0] if distortion is None else distortion
-    rays = [subpixel_rays(c, k, d, width, height, device, fisheye, supersample)
-            for c, k, d in zip(c2w, intrinsics, lenses)]
-    return tuple(torch.cat(r) for r in zip(*rays)) if len(rays) > 1 else rays[0]
 
 
 def _marched_rows(marched_offsets: torch.Tensor, kept: RaySamples) -> torch.Tensor:
@@ -276,7 +255,7 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
                 chunk: int | None = None, spp: int = 1, supersample: int = 1,
                 appearance_code: torch.Tensor | None = None, other_codes: Sequence[torch.Tensor | None] = (),
                 first_round: int | str | None = "auto") -> dict:
-    """Render one camera (or a batch of them, see ``c2w``) with the model's field in eval mode.
+    """Render one camera with the model's field in eval mode.
 
     Each pixel is the mean of ``supersample``² rays through its sub-pixel centres (the grid of
     the training pixels, see :class:`ngp_warp.training.config.TrainConfig`), each rendered ``spp``
@@ -284,10 +263,7 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
 
     Args:
         model: the scene's model (its field is switched to eval mode).
-        c2w: [3, 4] float32 camera-to-world (OpenGL convention), or [B, 3, 4]: B views of
-            one size rendered together (fewer launches and host waits a view; intrinsics [B, 4],
-            distortion [B, 6]; ``rgb``, ``depth`` and ``opacity`` gain a leading B, ``other_rgb``
-            one after its K).
+        c2w: [3, 4] float32 camera-to-world (OpenGL convention).
         intrinsics: [4] float32 fx, fy, cx, cy (pixels).
         width, height: image size in pixels.
         distortion: [6] float32 k1, k2, k3, k4, p1, p2 (OpenCV), or None for a pinhole.
@@ -313,8 +289,11 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
         ``n_shaded`` (through the colour network, per code); with ``other_codes``,
         ``other_rgb`` [K, H, W, 3] float32, the view coloured with each of them.
     """
-    batch = _check_arguments(c2w, intrinsics, distortion, width, height, spp, supersample, fisheye, chunk,
-                             first_round)
+    _check_camera(c2w, intrinsics, distortion, width, height, spp, supersample, fisheye)
+    for name, value in (("chunk", chunk), ("first_round", None if first_round == "auto" else first_round)):
+        if value is not None and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+            raise ValueError(f"{name} must be None or a positive integer{', or auto' * (name == 'first_round')}, "
+                             f"got {value!r}")
     if first_round == "auto":
         first_round = auto_first_round(model.view_shaded_per_ray)
     if other_codes and model.field.appearance is None:
@@ -329,21 +308,19 @@ def render_view(model: RadianceModel, c2w: torch.Tensor, intrinsics: torch.Tenso
     bg = None if background is None else torch.full((3,), float(background), device=dev)
     sizer = None if chunk is not None else ChunkSizer(
         sample_budget(dev), 1.5 * model.view_samples_per_ray if model.view_samples_per_ray else 64.0)
-    rays_o, rays_d = _views_rays(c2w.reshape(-1, 3, 4), intrinsics.reshape(-1, 4),
-                                 None if distortion is None else distortion.reshape(-1, 6), width, height, dev, fisheye,
-                                 supersample)
+    rays_o, rays_d = subpixel_rays(c2w, intrinsics, distortion, width, height, dev, fisheye, supersample)
     rgb, depth, opacity, counts = _render_rays(model, rays_o, rays_d, bg, spp, codes, first_round,
                                                lambda remaining: chunk or sizer.next_size(remaining), sizer)
     if sizer is not None:
         model.view_samples_per_ray = sizer.samples_per_ray
     model.view_shaded_per_ray = counts["n_shaded"] / (rays_o.shape[0] * spp)
-    scale, views = 1.0 / (supersample**2 * spp), c2w.reshape(-1, 3, 4).shape[0]
-    rgb = rgb.view(len(codes), views, -1, n, 3).sum(2).mul_(scale).clamp_(0, 1)
-    rgb = rgb.reshape(len(codes), *batch, height, width, 3)
+    scale = 1.0 / (supersample**2 * spp)
+    rgb = rgb.view(len(codes), -1, n, 3).sum(1).mul_(scale).clamp_(0, 1).reshape(len(codes), height, width, 3)
     return {
         "rgb": rgb[0],
-        "depth": depth.view(views, -1, n).sum(1).mul_(scale).reshape(*batch, height, width),
-        "opacity": opacity.view(views, -1, n).sum(1).mul_(scale).reshape(*batch, height, width),
+        "depth": depth.view(-1, n).sum(0).mul_(scale).reshape(height, width),
+        "opacity": opacity.view(-1, n).sum(0).mul_(scale).reshape(height, width),
         **counts,
         **({"other_rgb": rgb[1:]} if other_codes else {}),
     }
+

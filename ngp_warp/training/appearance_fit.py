@@ -37,8 +37,8 @@ POSE_LR_FINAL = 1e-5      # ... decayed exponentially to this over the fit
 
 
 def right_half(image: torch.Tensor) -> torch.Tensor:
-    """The columns a fitted view is scored on: [..., H, W, C] → [..., H, W - W // 2, C] (columns ≥ W // 2)."""
-    return image[..., image.shape[-2] // 2:, :]
+    """The columns a fitted view is scored on: [H, W, C] → [H, W - W // 2, C] (columns ≥ W // 2)."""
+    return image[:, image.shape[1] // 2:]
 
 
 def nearest_training_code(trainer: Trainer, c2w: torch.Tensor) -> torch.Tensor:

@@ -320,7 +320,7 @@ class Trainer:
         """:func:`ngp_warp.outputs.renderer.render_view` of one camera with the weight average (when
         on) and the training pixels' sub-pixel grid: [3, 4] c2w, [4] fx fy cx cy, optional [6]
         k1 k2 k3 k4 p1 p2 distortion (``fisheye``: OpenCV's fisheye lens) → rgb [H, W, 3],
-        depth/opacity [H, W] (B cameras of one size in one render: a leading B on each). ``spp`` > 1 averages that many renders with jittered sample
+        depth/opacity [H, W]. ``spp`` > 1 averages that many renders with jittered sample
         offsets along each ray; ``chunk`` None sizes the ray chunks to memory; ``supersample``
         overrides the sub-pixel grid (1: one ray per pixel, for previews); ``appearance_code``
         [A] float32 colours every ray (None: the mean training code); ``other_codes`` and
