@@ -159,8 +159,8 @@ def run() -> NoReturn:
     """The ``ngp-warp`` program (and ``python -m ngp_warp.cli``): :func:`main`, then the process
     ends at once, its output flushed. Every file the command writes is closed and its threads
     joined when :func:`main` returns; what the interpreter's own teardown would add (freeing
-    torch, CUDA and Warp: about a second on a GPU host, 0.4–0.7 s on 2 CPU cores) serves
-    nothing. An exception out of :func:`main` (a bug) still ends the usual way, with its traceback."""
+    torch and Warp: 0.6 s a command on 2 CPU cores) serves nothing. An exception out of
+    :func:`main` (a bug) still ends the usual way, with its traceback."""
     code = main()
     sys.stdout.flush()
     sys.stderr.flush()
