@@ -23,7 +23,8 @@ def _interrupt_while_loading():
     """Ctrl-C while the ``ngp-warp`` command's modules load ends it as a Ctrl-C later does: one
     line and exit code 130, no traceback. The press is only noted while they load (an import
     that catches every exception cannot swallow it) and acted on once they have; of several ranks
-    (``python -m ngp_warp.cli``, as ``--gpus`` and torchrun run them) rank 0 prints the line.
+    (``python -m ngp_warp.cli``, as ``--gpus`` and torchrun run them) the first of each machine
+    prints the line (:func:`ngp_warp.training.rank_env.reports`), as the CLI's other errors.
     Any other importer, or thread, keeps Python's own Ctrl-C."""
     import threading
 
@@ -41,7 +42,9 @@ def _interrupt_while_loading():
     finally:
         signal.signal(signal.SIGINT, previous)
     if pressed:
-        if _os.environ.get("RANK", "0") == "0":
+        from ngp_warp.training import rank_env  # no torch
+
+        if rank_env.reports():
             print("ngp-warp: interrupted", file=_sys.stderr)
         raise SystemExit(130)
 
