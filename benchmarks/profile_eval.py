@@ -91,8 +91,8 @@ def main() -> None:
         "render": lambda out, gt: None,
         "+ PSNR": lambda out, gt: psnr(out["rgb"], gt),
         "+ SSIM": lambda out, gt: (psnr(out["rgb"], gt), ssim(out["rgb"], gt)),
-        "+ images to host": lambda out, gt: (psnr(out["rgb"], gt), ssim(out["rgb"], gt), to_uint8(out["rgb"]),
-                                             depth_to_uint8(out["depth"], out["opacity"])),
+        "+ images to host": lambda out, gt: (psnr(out["rgb"], gt), ssim(out["rgb"], gt), to_uint8(out["rgb"]).cpu(),
+                                             depth_to_uint8(out["depth"], out["opacity"]).cpu()),
     }
     timed_pass(trainer, 2, passes["render"])  # kernels loaded
     rows = [(name, timed_pass(trainer, views, work)) for name, work in passes.items()]

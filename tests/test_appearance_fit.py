@@ -180,7 +180,7 @@ def test_evaluation_scores_the_right_half_with_the_fitted_code(trained, tmp_path
         assert not torch.equal(near_out["rgb"], mean_out["rgb"])  # another code than the mean
         assert "appearance_code" not in mean_out
         written = torch.from_numpy(iio.imread(tmp_path / "renders" / f"{Path(name).stem}.png"))
-        assert torch.equal(written, torch.from_numpy(to_uint8(out["rgb"])))
+        assert torch.equal(written, to_uint8(out["rgb"]))
     for key in ("psnr_mean_code", "psnr_nearest_code_left", "psnr_nearest_code_right"):
         assert metrics[key] == pytest.approx(sum(m[key] for m in metrics["per_image"]) / 2)
     assert metrics["ssim"] is not None  # the right half (24 x 12) holds an SSIM window
@@ -207,6 +207,6 @@ def test_evaluation_without_codes_keeps_its_keys(tmp_path):
     assert record["psnr"] == pytest.approx(psnr(view["rgb"], truth), abs=1e-9)
     assert record["ssim"] == pytest.approx(ssim(view["rgb"], truth), abs=1e-12)
     written = torch.from_numpy(iio.imread(tmp_path / "depth" / f"{Path(name).stem}.png"))
-    assert torch.equal(written, torch.from_numpy(depth_to_uint8(view["depth"], view["opacity"])))
+    assert torch.equal(written, depth_to_uint8(view["depth"], view["opacity"]))
     _, out, gt = next(iter_test_renders(trainer, fit_appearance=True))  # no codes: nothing fitted
     assert "appearance_code" not in out and out["rgb"].shape == gt.shape

@@ -1,16 +1,24 @@
-"""The evaluation's image conversions: depth maps as uint8."""
+"""The evaluation's image conversions (depth maps as uint8) and its waits for the device."""
+
+import warnings
 
 import numpy as np
+import pytest
 import torch
 
-from ngp_warp.outputs.evaluate import depth_to_uint8
+from ngp_warp.data.loading import load_scene
+from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.ops.field import FieldConfig
+from ngp_warp.outputs.evaluate import _one_behind, depth_to_uint8, evaluate
+from ngp_warp.training.config import TrainConfig
+from ngp_warp.training.trainer import Trainer
 
 
 def test_depth_spans_the_opaque_pixels_near_bright():
     gen = torch.Generator().manual_seed(0)
     depth = 0.5 + 4 * torch.rand(24, 32, generator=gen)
     opacity = torch.rand(24, 32, generator=gen)
-    img = depth_to_uint8(depth * opacity, opacity)  # the renderer's depth is weighted by opacity
+    img = depth_to_uint8(depth * opacity, opacity).numpy()  # the renderer's depth is weighted by opacity
     opaque = (opacity > 0.5).numpy()
     d = depth.numpy()
     want = 1.0 - (d - d[opaque].min()) / (d[opaque].max() - d[opaque].min())
@@ -23,3 +31,58 @@ def test_depth_spans_the_opaque_pixels_near_bright():
 def test_depth_of_a_transparent_view_is_black():
     depth = torch.rand(8, 8) * 3
     assert (depth_to_uint8(depth, torch.full((8, 8), 0.2)) == 0).all()
+
+
+def test_each_view_is_read_once_the_next_has_been_made():
+    made = []
+
+    def views():
+        for i in range(3):
+            made.append(i)
+            yield i
+
+    assert [(i, list(made)) for i in _one_behind(views())] == [(0, [0, 1]), (1, [0, 1, 2]), (2, [0, 1, 2])]
+    assert list(_one_behind(iter(()))) == [] and list(_one_behind([None])) == [None]
+
+
+def _host_waits(work) -> int:
+    """How often ``work()`` made the host wait for the device (torch's sync debug mode)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            work()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return sum("synchroniz" in str(w.message) for w in caught)
+
+
+@pytest.mark.cuda
+def test_the_evaluation_waits_for_the_device_only_where_its_renders_do(tmp_path):
+    path = write_demo_scene(tmp_path / "scene", width=32, height=32, n_train=4, n_test=4, supersample=1, device="cuda")
+    config = TrainConfig(steps=30, target_samples=1 << 13, grid_resolution=32,
+                         field=FieldConfig(n_levels=8, log2_hashmap_size=14, hidden=32))
+    trainer = Trainer(load_scene(path), config, device="cuda")
+    trainer.train(show_progress=False)
+    evaluate(trainer, tmp_path, show_progress=False)  # kernels loaded, the renderer's guesses settled
+    split = trainer.scene.test
+    cameras = [{**split.camera(i), "c2w": split.c2w[i].cuda(), "intrinsics": split.intrinsics[i].cuda()}
+               for i in range(len(split))]
+    renders = _host_waits(lambda: [trainer.render_image(**camera) for camera in cameras])
+    whole = _host_waits(lambda: evaluate(trainer, tmp_path, show_progress=False))
+    print(f"host waits: renders {renders}, evaluation {whole}")
+    # a view's scores, render and depth map read once the next view is queued; a few waits in all beside
+    assert renders > 0 and whole <= renders + 3 * len(cameras) + 6
+
+
+def test_an_evaluation_looks_up_lpips_once(tmp_path, monkeypatch):
+    from ngp_warp.outputs import lpips
+
+    looked_up = []
+    monkeypatch.setattr(lpips, "unavailable_reason", lambda net: looked_up.append(net) or "not here")
+    path = write_demo_scene(tmp_path / "scene", width=16, height=16, n_train=4, n_test=3, supersample=1)
+    config = TrainConfig(steps=1, target_samples=1 << 10, grid_resolution=16,
+                         field=FieldConfig(n_levels=4, log2_hashmap_size=12, hidden=16))
+    metrics = evaluate(Trainer(load_scene(path), config, device="cpu"), tmp_path, show_progress=False)
+    assert len(metrics["per_image"]) == 3 and looked_up == ["alex"]
+    assert metrics["lpips"] is None and metrics["lpips_note"] == "not computed: not here"

@@ -179,7 +179,7 @@ def view_rays(c2w: torch.Tensor, intrinsics: torch.Tensor, distortion: torch.Ten
     _check(intrinsics, "intrinsics", (4,))
     _check_lens(distortion, (6,), fisheye)
     lens = LENS_FISHEYE if fisheye else LENS_PINHOLE if distortion is None else LENS_OPENCV
-    dist = torch.zeros(6) if distortion is None else distortion
+    dist = torch.zeros(6, device=device) if distortion is None else distortion  # made where it is read
     n = width * height
     rays_o = torch.empty(n, 3, dtype=torch.float32, device=device)
     rays_d = torch.empty(n, 3, dtype=torch.float32, device=device)

@@ -25,6 +25,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import torch
+from PIL import Image
 
 from ngp_warp.atomic import atomic_write_text
 from ngp_warp.data.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, generate_rays
@@ -191,10 +192,27 @@ def image_rays(split: Split, index: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 # ---- images -------------------------------------------------------------------------------------
 
+PLAIN_MODES = ("RGB", "RGBA", "L", "LA")  # Pillow's 8-bit modes, whose pixels need no conversion
+
+
+def _decoded(path: Path) -> np.ndarray:
+    """The image's pixels as imageio's Pillow plugin reads them: an 8-bit image straight from
+    Pillow (imageio's own steps cost about 1 ms an image, most of it holding the GIL that the
+    loader's threads share), any other mode (palettes, 16 bit) or a file Pillow cannot open
+    through imageio, which converts it or says what is wrong."""
+    try:
+        with Image.open(path) as image:
+            if image.mode in PLAIN_MODES:
+                return np.asarray(image)
+    except Exception:  # imageio reads it again below and raises what is wrong
+        pass
+    return np.asarray(iio.imread(path, plugin="pillow"))
+
+
 def _read_image(path: Path) -> np.ndarray:
     """[H, W, 3 or 4] uint8 from any 8/16-bit grey, grey+alpha, RGB or RGBA file."""
     try:
-        a = np.asarray(iio.imread(path, plugin="pillow"))
+        a = _decoded(path)
     except Exception as e:  # imageio/Pillow raise many types for corrupt or unknown files
         reason = "not an image file Pillow can read" if "can not handle" in str(e) else str(e)
         raise DataError(f"{path}: cannot read image ({reason})") from None
@@ -244,7 +262,7 @@ def _load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[
         return (a.shape[1], a.shape[0]), downscale_image(a, downscale)
 
     out, sizes = None, []
-    pool = ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1))
+    pool = ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1))
     try:
         for k, (size, img) in enumerate(pool.map(load, frames)):
             if sizes and size != sizes[0]:

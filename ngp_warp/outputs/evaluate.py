@@ -3,8 +3,10 @@ appearance codes on the right half of each view, its code fitted on the left), r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections import deque
+from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -17,8 +19,9 @@ from ngp_warp.progress import progress
 from ngp_warp.training.appearance_fit import (FIT_ITERATIONS, fit_appearance_and_pose, fit_appearance_code,
                                      nearest_training_code, right_half)
 from ngp_warp.atomic import atomic_dir, atomic_write_text
-from ngp_warp.outputs.lpips import lpips_or_reason, lpips_summary
-from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr, ssim
+from ngp_warp.outputs.lpips import lpips_scorer, lpips_summary
+from ngp_warp.data.loading import Split
+from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr_tensor, ssim_tensor
 from ngp_warp.training.trainer import Trainer
 
 
@@ -32,12 +35,14 @@ def composite_on(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     return px[..., :3] * a + background * (1.0 - a)
 
 
-def to_uint8(img: torch.Tensor) -> np.ndarray:
-    return (img.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+def to_uint8(img: torch.Tensor) -> torch.Tensor:
+    """An image in [0, 1] (clamped) as uint8, rounded, on its device."""
+    return (img.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8)
 
 
-def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
-    """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8."""
+def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
+    """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8 on the
+    depth's device."""
     d = depth / opacity.clamp_min(1e-6)
     mask = opacity > 0.5
     # the range of the opaque pixels without reading it on the host (no pixel opaque: all black)
@@ -45,6 +50,13 @@ def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> np.ndarray:
     hi = torch.where(mask, d, -torch.inf).amax()
     d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
+
+
+def _cameras_on(split: Split, device: torch.device) -> Split:
+    """``split`` with its cameras on ``device``, where every view's rays read them, and its
+    images where they are (a test split's go to the device one at a time)."""
+    return dataclasses.replace(split, c2w=split.c2w.to(device), intrinsics=split.intrinsics.to(device),
+                               distortion=split.distortion.to(device))
 
 
 class BackgroundWrites:
@@ -91,13 +103,15 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     With ``fit_appearance`` and ``whole_codes``, the render dict also holds ``other_rgb`` [2, H,
     W, 3]: the view (at its recorded pose) with the nearest training camera's code and with the
     mean code, coloured from the same samples as the fitted code's where the pose is the same."""
-    split = trainer.scene.test if split is None else split
-    white = torch.ones(3, device=trainer.device)
+    device = torch.device(trainer.device)
+    split = _cameras_on(trainer.scene.test if split is None else split, device)
+    white = torch.ones(3, device=device)
     background = trainer.view_background
     fit = fit_appearance and trainer.field.appearance is not None
     for i in range(0, len(split.names), every):
         camera = split.camera(i)
-        gt = composite_on(split.images[i].to(trainer.device), white)
+        # without waiting for the device: CUDA stages a pageable host copy before the call returns
+        gt = composite_on(split.images[i].to(device, non_blocking=True), white)
         code = None
         if nearest_code and trainer.field.appearance is not None and not fit:
             code = nearest_training_code(trainer, camera["c2w"])
@@ -119,27 +133,69 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
         yield split.names[i], out, gt
 
 
-def _scores(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[dict, str]:
-    """PSNR, SSIM (None below an 11-pixel window) and LPIPS (None and the reason when it cannot
-    be computed) of rgb against gt ([H, W, 3] float32 in [0, 1])."""
-    s = ssim(rgb, gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
-    lpips, lpips_note = lpips_or_reason(rgb, gt)
-    return {"psnr": psnr(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
+def _scores(rgb: torch.Tensor, gt: torch.Tensor, lpips_score) -> tuple[dict, str]:
+    """PSNR and SSIM (None below an 11-pixel window) as 0-d tensors on the images' device, and
+    LPIPS as a float (None and the reason when it cannot be computed: ``lpips_score``, an
+    :func:`~ngp_warp.outputs.lpips.lpips_scorer`), of rgb against gt ([H, W, 3] float32 in [0, 1])."""
+    s = ssim_tensor(rgb, gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
+    lpips, lpips_note = lpips_score(rgb, gt)
+    return {"psnr": psnr_tensor(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
 
 
 NEAREST_CODE_KEYS = ("psnr_nearest_code", "psnr_nearest_code_left", "psnr_nearest_code_right")
 
 
-def psnr_whole_and_halves(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[float, float, float]:
-    """PSNR of ``rgb`` against ``gt`` ([H, W, 3] float32 each): the whole image, its left half
-    (columns < W // 2) and its right half (:func:`right_half`)."""
+def psnr_whole_and_halves(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """PSNR of ``rgb`` against ``gt`` ([H, W, 3] float32 each) as three 0-d float64 tensors on
+    their device: the whole image, its left half (columns < W // 2) and its right half
+    (:func:`right_half`)."""
     half = gt.shape[1] // 2
-    return psnr(rgb, gt), psnr(rgb[:, :half], gt[:, :half]), psnr(right_half(rgb), right_half(gt))
+    return (psnr_tensor(rgb, gt), psnr_tensor(rgb[:, :half], gt[:, :half]),
+            psnr_tensor(right_half(rgb), right_half(gt)))
 
 
 def _nearest_code_scores(rgb: torch.Tensor, gt: torch.Tensor) -> dict:
     """:func:`psnr_whole_and_halves` of a view rendered with the nearest training camera's code."""
     return dict(zip(NEAREST_CODE_KEYS, psnr_whole_and_halves(rgb, gt)))
+
+
+class _ViewReadout:
+    """One scored view, kept on the device until :meth:`read` brings its scores (0-d device
+    tensors, None or host floats) and its uint8 render and depth map to the host. Read one view
+    later (:func:`_one_behind`), once the next view's render is queued, the host's reads wait
+    for the device once a view, not at each score and image, and its file and bookkeeping work
+    runs while the device renders."""
+
+    def __init__(self, name: str, out: dict, gt: torch.Tensor, fitted: bool, lpips_score):
+        self.name = name
+        if fitted:
+            scores, self.lpips_note = _scores(right_half(out["rgb"]), right_half(gt), lpips_score)
+            nearest, mean = out["other_rgb"]
+            scores["psnr_mean_code"] = psnr_tensor(mean, gt)
+            scores.update(_nearest_code_scores(nearest, gt))
+        else:
+            scores, self.lpips_note = _scores(out["rgb"], gt, lpips_score)
+        self._scores = scores
+        self._images = (to_uint8(out["rgb"]), depth_to_uint8(out["depth"], out["opacity"]))
+
+    def read(self) -> tuple[dict, np.ndarray, np.ndarray]:
+        """The scores as host floats (in their order; None where not computed), the render [H, W,
+        3] and the depth map [H, W] uint8."""
+        on_device = [k for k, v in self._scores.items() if isinstance(v, torch.Tensor)]
+        values = dict(zip(on_device, torch.stack([self._scores[k] for k in on_device]).tolist()))
+        scores = {k: values.get(k, v) for k, v in self._scores.items()}
+        return scores, *(t.cpu().numpy() for t in self._images)
+
+
+def _one_behind(items: Iterable) -> Iterator:
+    """``items`` in order, each yielded once the next one has been made (the last at the end)."""
+    previous = marker = object()
+    for item in items:
+        if previous is not marker:
+            yield previous
+        previous = item
+    if previous is not marker:
+        yield previous
 
 
 def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dict:
@@ -159,18 +215,13 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     bar = progress(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
     with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths, \
             BackgroundWrites() as writes:
-        for name, out, gt in views:
-            stem = Path(name).stem
-            if fitted:
-                scores, lpips_note = _scores(right_half(out["rgb"]), right_half(gt))
-                nearest, mean = out["other_rgb"]
-                scores["psnr_mean_code"] = psnr(mean, gt)
-                scores.update(_nearest_code_scores(nearest, gt))
-            else:
-                scores, lpips_note = _scores(out["rgb"], gt)
-            per_image.append({"image": name, **scores})
-            writes.submit(iio.imwrite, renders / f"{stem}.png", to_uint8(out["rgb"]))
-            writes.submit(iio.imwrite, depths / f"{stem}.png", depth_to_uint8(out["depth"], out["opacity"]))
+        lpips_score = lpips_scorer()
+        for view in _one_behind(_ViewReadout(name, out, gt, fitted, lpips_score) for name, out, gt in views):
+            stem, lpips_note = Path(view.name).stem, view.lpips_note
+            scores, rgb, depth = view.read()
+            per_image.append({"image": view.name, **scores})
+            writes.submit(iio.imwrite, renders / f"{stem}.png", rgb)
+            writes.submit(iio.imwrite, depths / f"{stem}.png", depth)
             bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
             bar.update()
         bar.close()

@@ -48,7 +48,6 @@ def _metric(net: str, device: torch.device):
     return _metrics[key]
 
 
-@torch.no_grad()
 def lpips_or_reason(pred: torch.Tensor, target: torch.Tensor, net: str = LPIPS_NET) -> tuple[float | None, str]:
     """LPIPS of one image pair, or None and why it was not computed.
 
@@ -60,20 +59,31 @@ def lpips_or_reason(pred: torch.Tensor, target: torch.Tensor, net: str = LPIPS_N
         (distance, note): the distance (lower is closer) and what computed it, or (None,
         "not computed: ...").
     """
-    for name, t in (("pred", pred), ("target", target)):
-        if not isinstance(t, torch.Tensor) or t.dim() != 3 or t.shape[-1] != 3 or not t.is_floating_point():
-            raise ValueError(f"{name} must be a float [H, W, 3] tensor")
-    if pred.shape != target.shape or pred.device != target.device:
-        raise ValueError(f"pred and target differ: {list(pred.shape)} on {pred.device}, "
-                         f"{list(target.shape)} on {target.device}")
+    return lpips_scorer(net)(pred, target)
+
+
+def lpips_scorer(net: str = LPIPS_NET):
+    """:func:`lpips_or_reason` as a function of the image pair, what this machine has looked up
+    once (an evaluation scores hundreds of views; the lookup searches the import path)."""
     reason = unavailable_reason(net)
-    if reason is not None:
-        return None, f"not computed: {reason}"
-    metric = _metric(net, pred.device)
-    images = [t.float().clamp(0, 1).permute(2, 0, 1)[None] for t in (pred, target)]
-    value = float(metric(*images))
-    metric.reset()
-    return value, f"torchmetrics LPIPS, {net} backbone, images in [0, 1]"
+
+    @torch.no_grad()
+    def score(pred: torch.Tensor, target: torch.Tensor) -> tuple[float | None, str]:
+        for name, t in (("pred", pred), ("target", target)):
+            if not isinstance(t, torch.Tensor) or t.dim() != 3 or t.shape[-1] != 3 or not t.is_floating_point():
+                raise ValueError(f"{name} must be a float [H, W, 3] tensor")
+        if pred.shape != target.shape or pred.device != target.device:
+            raise ValueError(f"pred and target differ: {list(pred.shape)} on {pred.device}, "
+                             f"{list(target.shape)} on {target.device}")
+        if reason is not None:
+            return None, f"not computed: {reason}"
+        metric = _metric(net, pred.device)
+        images = [t.float().clamp(0, 1).permute(2, 0, 1)[None] for t in (pred, target)]
+        value = float(metric(*images))
+        metric.reset()
+        return value, f"torchmetrics LPIPS, {net} backbone, images in [0, 1]"
+
+    return score
 
 
 def lpips_summary(values: list[float | None], note: str) -> dict:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import math
 
 import torch
 import torch.nn.functional as F
@@ -39,9 +38,14 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     .. math::
         \\mathrm{PSNR} = -10 \\log_{10} \\frac{1}{HWC} \\sum (\\mathrm{pred} - \\mathrm{gt})^2
     """
+    return float(psnr_tensor(pred, gt))
+
+
+def psnr_tensor(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """:func:`psnr` as a 0-d float64 tensor on the images' device, computed without a host read
+    (the evaluation reads a view's scores later, in one copy)."""
     _check(pred, gt)
-    mse = float(((pred.double() - gt.double()) ** 2).mean())
-    return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
+    return -10.0 * torch.log10(((pred.double() - gt.double()) ** 2).mean())
 
 
 @functools.lru_cache(maxsize=None)  # one per device, made once
@@ -87,6 +91,11 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor) -> float:
 
     with means and (co)variances taken under the Gaussian window.
     """
+    return float(ssim_tensor(pred, gt))
+
+
+def ssim_tensor(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """:func:`ssim` as a 0-d float64 tensor on the images' device, computed without a host read."""
     _check(pred, gt, SSIM_WINDOW)
     x = pred.double().permute(2, 0, 1)  # [C, H, W]
     y = gt.double().permute(2, 0, 1)
@@ -98,4 +107,4 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor) -> float:
     cov = xy - mu_x * mu_y
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-    return float(s.mean())
+    return s.mean()

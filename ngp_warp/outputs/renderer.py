@@ -98,6 +98,9 @@ def subpixel_rays(c2w: torch.Tensor, intrinsics: torch.Tensor, distortion: torch
     """Every ray of one camera (arguments as :func:`ngp_warp.data.cameras.view_rays`'s): origins and
     directions [supersample² × H × W, 3] float32, sub-pixel by sub-pixel (:func:`subpixel_offsets`),
     each row by row, in one set so that a supersampled view's chunks are as large as a plain one's."""
+    # the camera on the device once, not once per sub-pixel: copying a host tensor waits for the device
+    c2w, intrinsics = c2w.to(device, torch.float32), intrinsics.to(device, torch.float32)
+    distortion = None if distortion is None else distortion.to(device, torch.float32)
     rays = [view_rays(c2w, intrinsics, distortion, width, height, device, fisheye, shift)
             for shift in subpixel_offsets(supersample)]
     return tuple(torch.cat(r) for r in zip(*rays)) if len(rays) > 1 else rays[0]
