@@ -1,5 +1,6 @@
 """The evaluation's image conversions (depth maps as uint8) and its waits for the device."""
 
+import threading
 import warnings
 
 import numpy as np
@@ -86,3 +87,28 @@ def test_an_evaluation_looks_up_lpips_once(tmp_path, monkeypatch):
     metrics = evaluate(Trainer(load_scene(path), config, device="cpu"), tmp_path, show_progress=False)
     assert len(metrics["per_image"]) == 3 and looked_up == ["alex"]
     assert metrics["lpips"] is None and metrics["lpips_note"] == "not computed: not here"
+
+
+def test_a_weight_average_block_inside_another_leaves_the_field_alone(tmp_path):
+    path = write_demo_scene(tmp_path / "scene", width=16, height=16, n_train=4, n_test=1, supersample=1)
+    config = TrainConfig(steps=30, target_samples=1 << 12, grid_resolution=16,
+                         field=FieldConfig(n_levels=4, log2_hashmap_size=12, hidden=16))
+    trainer = Trainer(load_scene(path), config, device="cpu")
+    trainer.train(show_progress=False)
+    table = next(trainer.field.encoding.parameters())
+    live, seen = table.detach().clone(), []
+    with trainer.weights.averaged_in_field():
+        assert not torch.equal(table, live)  # the average in
+        with torch.no_grad():
+            table.add_(1.0)  # weights an inner block must leave as they are (an evaluation's renders)
+        marked = table.detach().clone()
+
+        def inner():
+            with trainer.weights.averaged_in_field():
+                seen.append(torch.equal(table, marked))
+
+        worker = threading.Thread(target=inner)
+        worker.start()
+        worker.join()
+        seen.append(torch.equal(table, marked))
+    assert seen == [True, True] and torch.equal(table, live)

@@ -213,8 +213,8 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     views = iter_test_renders(trainer, fit_appearance=fitted, whole_codes=True)
     per_image = []
     bar = progress(desc="eval", total=len(trainer.scene.test.names), unit="view", disable=not show_progress)
-    with atomic_dir(out_dir / "renders") as renders, atomic_dir(out_dir / "depth") as depths, \
-            BackgroundWrites() as writes:
+    with trainer.weights.averaged_in_field(), atomic_dir(out_dir / "renders") as renders, \
+            atomic_dir(out_dir / "depth") as depths, BackgroundWrites() as writes:  # the average swapped in once
         lpips_score = lpips_scorer()
         for view in _one_behind(_ViewReadout(name, out, gt, fitted, lpips_score) for name, out, gt in views):
             stem, lpips_note = Path(view.name).stem, view.lpips_note

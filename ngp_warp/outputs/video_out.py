@@ -116,7 +116,8 @@ def render_trainer_video(trainer, path: CameraPath, out: Path, depth: bool, quie
     def frame(c2w, intrinsics, width, height):
         return trainer.render_image(c2w, intrinsics, width, height, background=background)
 
-    return render_path_video(frame, path, out, depth=depth, show_progress=not quiet)
+    with trainer.weights.averaged_in_field():  # swapped in once, not once a frame
+        return render_path_video(frame, path, out, depth=depth, show_progress=not quiet)
 
 
 def camera_path_from_args(args, scene, scene_dir: str | Path) -> CameraPath:

@@ -11,6 +11,7 @@ a step is deferred: :meth:`FieldOptimizer.defer` records its learning rate and a
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Callable
 
 import torch
@@ -53,6 +54,8 @@ class FieldOptimizer:
         self._params = list(field.parameters())
         self.averaged = [p.detach().clone() for p in self._params] if weight_average > 0 else None
         self._pending: tuple[float, float | None] | None = None  # (lr, average decay) of the deferred update
+        self._in_field = 0  # averaged_in_field blocks open: the outermost swaps the weights
+        self._in_field_lock = threading.Lock()  # the evaluation's render threads open blocks inside its own
         self.before_update: Callable[[], None] | None = None  # data-parallel: wait for the reduced gradients
         # The lazy table optimizer keeps the table's average; the rest are lerped after each update.
         self._lerped: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
@@ -125,18 +128,27 @@ class FieldOptimizer:
     @contextlib.contextmanager
     def averaged_in_field(self):
         """The averaged weights in the field inside the block (when averaging is on), the live
-        ones restored after it; either way the deferred update is applied first."""
-        averaged = self.averaged_weights()
-        if averaged is None:
-            yield
-            return
-        params = [p.data for p in self._params]
-        live = [p.clone() for p in params]
-        torch._foreach_copy_(params, averaged)
+        ones restored after it; either way the deferred update is applied first. A block opened
+        inside another (from any thread, e.g. each render inside an evaluation's) changes
+        nothing: the outermost swaps the weights once."""
+        with self._in_field_lock:
+            outermost = self._in_field == 0
+            self._in_field += 1
         try:
-            yield
+            averaged = self.averaged_weights() if outermost else None
+            if averaged is None:
+                yield
+                return
+            params = [p.data for p in self._params]
+            live = [p.clone() for p in params]
+            torch._foreach_copy_(params, averaged)
+            try:
+                yield
+            finally:
+                torch._foreach_copy_(params, live)
         finally:
-            torch._foreach_copy_(params, live)
+            with self._in_field_lock:
+                self._in_field -= 1
 
     def state_dict(self) -> dict:
         """``optimizer`` (the MLPs' Adam), ``table_optimizer`` (LazyAdam's, or None) and
