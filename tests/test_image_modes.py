@@ -6,7 +6,7 @@ import pytest
 from PIL import Image
 
 from ngp_warp.data.data_error import DataError
-from ngp_warp.data.loading import _read_image
+from ngp_warp.data.images import read_image
 
 
 def _pixels(mode: str) -> Image.Image:
@@ -30,7 +30,7 @@ def test_every_mode_reads_as_imageio_reads_it(tmp_path, mode):
         want = want[..., None]
     if want.shape[2] <= 2:
         want = np.concatenate([np.repeat(want[..., :1], 3, axis=2), want[..., 1:]], axis=2)
-    got = _read_image(path)
+    got = read_image(path)
     assert got.dtype == np.uint8 and got.shape[:2] == (6, 5) and got.shape[2] in (3, 4)
     np.testing.assert_array_equal(got, want)
     assert len(np.unique(got)) > 4  # not a constant image
@@ -45,5 +45,5 @@ def test_a_truncated_or_foreign_file_is_one_line(tmp_path):
     foreign.write_text("not an image")
     for path in (truncated, foreign):
         with pytest.raises(DataError, match=f"^{path}: cannot read image") as e:
-            _read_image(path)
+            read_image(path)
         assert "\n" not in str(e.value)

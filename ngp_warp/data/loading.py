@@ -2,6 +2,7 @@
 
 * NeRF-synthetic and instant-ngp files: see :mod:`ngp_warp.data.transforms_json` (frames whose image
   is missing are skipped with one warning, as instant-ngp does).
+* The image files, read on threads and downscaled: :mod:`ngp_warp.data.images`.
 * COLMAP: a folder with ``sparse/0/`` (or ``sparse/``) holding ``cameras``, ``images`` and
   ``points3D`` (.bin or .txt) and the images in ``images/`` (``images_N/`` with downscale N when
   that folder exists, as in the mip-NeRF 360 and nerfstudio layouts). The model becomes an
@@ -17,20 +18,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import torch
-from PIL import Image
 
 from ngp_warp.atomic import atomic_write_text
 from ngp_warp.data.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, generate_rays
 from ngp_warp.data.colmap import colmap_to_transforms, read_colmap_model
 from ngp_warp.data.data_error import DataError, short
+from ngp_warp.data.images import downscale_image, load_images
 from ngp_warp.data.transforms_json import (NGP_SCENE_KEYS, Frame, check_pose_set, contraction_key, declared_size, frame_camera, log,
                                       read_frames, read_json, world_box, world_from_scene)
 
@@ -190,98 +188,6 @@ def image_rays(split: Split, index: int) -> tuple[torch.Tensor, torch.Tensor]:
     return split.rays(idx, xs.reshape(-1), ys.reshape(-1))
 
 
-# ---- images -------------------------------------------------------------------------------------
-
-PLAIN_MODES = ("RGB", "RGBA", "L", "LA")  # Pillow's 8-bit modes, whose pixels need no conversion
-
-
-def _decoded(path: Path) -> np.ndarray:
-    """The image's pixels as imageio's Pillow plugin reads them: an 8-bit image straight from
-    Pillow (imageio's own steps cost about 1 ms an image, most of it holding the GIL that the
-    loader's threads share), any other mode (palettes, 16 bit) or a file Pillow cannot open
-    through imageio, which converts it or says what is wrong."""
-    try:
-        with Image.open(path) as image:
-            if image.mode in PLAIN_MODES:
-                return np.asarray(image)
-    except Exception:  # imageio reads it again below and raises what is wrong
-        pass
-    return np.asarray(iio.imread(path, plugin="pillow"))
-
-
-def _read_image(path: Path) -> np.ndarray:
-    """[H, W, 3 or 4] uint8 from any 8/16-bit grey, grey+alpha, RGB or RGBA file."""
-    try:
-        a = _decoded(path)
-    except Exception as e:  # imageio/Pillow raise many types for corrupt or unknown files
-        reason = "not an image file Pillow can read" if "can not handle" in str(e) else str(e)
-        raise DataError(f"{path}: cannot read image ({reason})") from None
-    if a.dtype == np.uint16:
-        a = ((a.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
-    elif a.dtype == np.bool_:
-        a = a.astype(np.uint8) * 255
-    elif a.dtype != np.uint8:
-        raise DataError(f"{path}: unsupported pixel type {a.dtype} (8 or 16 bit images only)")
-    if a.ndim == 2:
-        a = a[..., None]
-    if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or 0 in a.shape:
-        raise DataError(f"{path}: unsupported image layout {list(a.shape)}")
-    if a.shape[2] <= 2:  # grey (+ alpha)
-        a = np.concatenate([np.repeat(a[..., :1], 3, axis=2), a[..., 1:]], axis=2)
-    return a
-
-
-def downscale_image(a: np.ndarray, n: int) -> np.ndarray:
-    """Area-average n x n blocks of a uint8 [H, W, C] image (cropped to multiples of n).
-
-    RGBA is averaged premultiplied, so compositing the result on any background equals
-    downscaling the composite: rgb = sum(rgb a) / sum(a), alpha = mean(a) (a block with no
-    coverage keeps its plain mean colour).
-    """
-    if n == 1:
-        return a
-    h, w, c = a.shape[0] // n, a.shape[1] // n, a.shape[2]
-    b = a[: h * n, : w * n].reshape(h, n, w, n, c).astype(np.float64)
-    if c == 4:
-        alpha = b[..., 3:]
-        a_sum = alpha.sum(axis=(1, 3))
-        rgb_premult = (b[..., :3] * alpha).sum(axis=(1, 3))
-        rgb = np.where(a_sum > 0, rgb_premult / np.maximum(a_sum, 1e-12), b[..., :3].mean(axis=(1, 3)))
-        out = np.concatenate([rgb, a_sum / (n * n)], axis=-1)
-    else:
-        out = b.mean(axis=(1, 3))
-    return np.clip(np.floor(out + 0.5), 0, 255).astype(np.uint8)
-
-
-def _load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """Read, check and downscale every frame's image -> ([N, h, w, C] uint8, original (W, H)s)."""
-    def load(frame: Frame):
-        a = _read_image(frame.image)
-        if a.shape[0] < downscale or a.shape[1] < downscale:
-            raise DataError(f"{frame.image}: image is {a.shape[1]}x{a.shape[0]}, smaller than downscale {downscale}")
-        return (a.shape[1], a.shape[0]), downscale_image(a, downscale)
-
-    out, sizes = None, []
-    pool = ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1))
-    try:
-        for k, (size, img) in enumerate(pool.map(load, frames)):
-            if sizes and size != sizes[0]:
-                raise DataError(f"{frames[k].image}: image is {size[0]}x{size[1]} but the first image "
-                                f"({frames[0].image.name}) is {sizes[0][0]}x{sizes[0][1]}")
-            sizes.append(size)
-            if out is None:
-                out = np.empty((len(frames), *img.shape), dtype=np.uint8)
-            if img.shape[2] > out.shape[3]:  # the first RGBA image after RGB ones: add opaque alpha
-                out = np.concatenate([out, np.full(out.shape[:3] + (1,), 255, np.uint8)], axis=3)
-            elif img.shape[2] < out.shape[3]:
-                img = np.concatenate([img, np.full(img.shape[:2] + (1,), 255, np.uint8)], axis=2)
-            out[k] = img
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)  # after an error, skip the images not yet read
-    return out, sizes
-
-
-
 def _warn_rescaled(frames: list[Frame], sizes: list[tuple[int, int]]) -> None:
     """One warning when frames declare a w x h other than their image's (same aspect ratio)."""
     odd = [(f, size) for f, size in zip(frames, sizes) if declared_size(f) not in (None, size)]
@@ -380,7 +286,7 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
 
     for frames in (train, train + test):  # the training views apart, then beside the test views
         check_pose_set(frames, sources[0][1])
-    images, sizes = _load_images(train + test, downscale)
+    images, sizes = load_images(train + test, downscale)
     n = len(train)
     first = sources[0][1]
     is_ngp = kind == "colmap" or first.name != "transforms_train.json" or any(

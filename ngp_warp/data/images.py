@@ -1,0 +1,104 @@
+"""Image files of a scene: read in any 8/16-bit grey, grey+alpha, RGB or RGBA layout, checked,
+downscaled by area averaging, and stacked (:func:`load_images`, on threads: Pillow decodes
+without holding the GIL). Every problem raises :class:`DataError`, one line naming the file."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+from PIL import Image
+
+from ngp_warp.data.data_error import DataError
+from ngp_warp.data.transforms_json import Frame
+
+PLAIN_MODES = ("RGB", "RGBA", "L", "LA")  # Pillow's 8-bit modes, whose pixels need no conversion
+
+
+def _decoded(path: Path) -> np.ndarray:
+    """The image's pixels as imageio's Pillow plugin reads them: an 8-bit image straight from
+    Pillow (imageio's own steps cost about 1 ms an image, most of it holding the GIL that the
+    loader's threads share), any other mode (palettes, 16 bit) or a file Pillow cannot open
+    through imageio, which converts it or says what is wrong."""
+    try:
+        with Image.open(path) as image:
+            if image.mode in PLAIN_MODES:
+                return np.asarray(image)
+    except Exception:  # imageio reads it again below and raises what is wrong
+        pass
+    return np.asarray(iio.imread(path, plugin="pillow"))
+
+
+def read_image(path: Path) -> np.ndarray:
+    """[H, W, 3 or 4] uint8 from any 8/16-bit grey, grey+alpha, RGB or RGBA file."""
+    try:
+        a = _decoded(path)
+    except Exception as e:  # imageio/Pillow raise many types for corrupt or unknown files
+        reason = "not an image file Pillow can read" if "can not handle" in str(e) else str(e)
+        raise DataError(f"{path}: cannot read image ({reason})") from None
+    if a.dtype == np.uint16:
+        a = ((a.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+    elif a.dtype == np.bool_:
+        a = a.astype(np.uint8) * 255
+    elif a.dtype != np.uint8:
+        raise DataError(f"{path}: unsupported pixel type {a.dtype} (8 or 16 bit images only)")
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or 0 in a.shape:
+        raise DataError(f"{path}: unsupported image layout {list(a.shape)}")
+    if a.shape[2] <= 2:  # grey (+ alpha)
+        a = np.concatenate([np.repeat(a[..., :1], 3, axis=2), a[..., 1:]], axis=2)
+    return a
+
+
+def downscale_image(a: np.ndarray, n: int) -> np.ndarray:
+    """Area-average n x n blocks of a uint8 [H, W, C] image (cropped to multiples of n).
+
+    RGBA is averaged premultiplied, so compositing the result on any background equals
+    downscaling the composite: rgb = sum(rgb a) / sum(a), alpha = mean(a) (a block with no
+    coverage keeps its plain mean colour).
+    """
+    if n == 1:
+        return a
+    h, w, c = a.shape[0] // n, a.shape[1] // n, a.shape[2]
+    b = a[: h * n, : w * n].reshape(h, n, w, n, c).astype(np.float64)
+    if c == 4:
+        alpha = b[..., 3:]
+        a_sum = alpha.sum(axis=(1, 3))
+        rgb_premult = (b[..., :3] * alpha).sum(axis=(1, 3))
+        rgb = np.where(a_sum > 0, rgb_premult / np.maximum(a_sum, 1e-12), b[..., :3].mean(axis=(1, 3)))
+        out = np.concatenate([rgb, a_sum / (n * n)], axis=-1)
+    else:
+        out = b.mean(axis=(1, 3))
+    return np.clip(np.floor(out + 0.5), 0, 255).astype(np.uint8)
+
+
+def load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Read, check and downscale every frame's image -> ([N, h, w, C] uint8, original (W, H)s)."""
+    def load(frame: Frame):
+        a = read_image(frame.image)
+        if a.shape[0] < downscale or a.shape[1] < downscale:
+            raise DataError(f"{frame.image}: image is {a.shape[1]}x{a.shape[0]}, smaller than downscale {downscale}")
+        return (a.shape[1], a.shape[0]), downscale_image(a, downscale)
+
+    out, sizes = None, []
+    pool = ThreadPoolExecutor(max_workers=min(16, os.cpu_count() or 1))
+    try:
+        for k, (size, img) in enumerate(pool.map(load, frames)):
+            if sizes and size != sizes[0]:
+                raise DataError(f"{frames[k].image}: image is {size[0]}x{size[1]} but the first image "
+                                f"({frames[0].image.name}) is {sizes[0][0]}x{sizes[0][1]}")
+            sizes.append(size)
+            if out is None:
+                out = np.empty((len(frames), *img.shape), dtype=np.uint8)
+            if img.shape[2] > out.shape[3]:  # the first RGBA image after RGB ones: add opaque alpha
+                out = np.concatenate([out, np.full(out.shape[:3] + (1,), 255, np.uint8)], axis=3)
+            elif img.shape[2] < out.shape[3]:
+                img = np.concatenate([img, np.full(img.shape[:2] + (1,), 255, np.uint8)], axis=2)
+            out[k] = img
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)  # after an error, skip the images not yet read
+    return out, sizes
