@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import datetime
 import os
-import sys
 
 import torch
 import torch.distributed as dist
