@@ -8,7 +8,7 @@ import imageio.v3 as iio
 import pytest
 import torch
 
-from ngp_warp.training.appearance_fit import FIT_ITERATIONS, fit_appearance_code, nearest_training_code, right_half
+from ngp_warp.training.appearance_fit import FIT_ITERATIONS, FIT_PULL, fit_appearance_code, nearest_training_code, right_half
 from ngp_warp.training.config import TrainConfig
 from ngp_warp.data.loading import load_scene
 from ngp_warp.outputs.evaluate import depth_to_uint8, evaluate, iter_test_renders, to_uint8
@@ -67,8 +67,9 @@ def test_fitted_code_reproduces_a_known_code_and_leaves_the_field_alone(trained)
 
 
 def fit_by_rendering_each_iteration(trainer, c2w, intrinsics, width, height, image, background, iterations,
-                                    rays_per_iteration, lr=1e-2, seed=0):
-    """The fit as its definition reads: every iteration renders its rays anew with the code."""
+                                    rays_per_iteration, lr=1e-2, seed=0, pull=0.0):
+    """The fit as its definition reads: every iteration renders its rays anew with the code, its
+    loss the squared error plus ``pull`` times the code's mean squared distance to the mean code."""
     from ngp_warp.data.cameras import generate_rays
     from ngp_warp.ops.optim import Adam
     from ngp_warp.training.appearance_fit import _left_half_pixels
@@ -76,7 +77,8 @@ def fit_by_rendering_each_iteration(trainer, c2w, intrinsics, width, height, ima
     field = trainer.field
     px_all, py_all = _left_half_pixels(width, height, iterations, rays_per_iteration, seed)
     with trainer.weights.averaged_in_field():
-        code = field.appearance.weight.detach().mean(0).clone().requires_grad_(True)
+        mean = field.appearance.weight.detach().mean(0)
+        code = mean.clone().requires_grad_(True)
         adam = Adam([code], lr=lr)
 
         def field_fn(positions, directions):
@@ -89,13 +91,14 @@ def fit_by_rendering_each_iteration(trainer, c2w, intrinsics, width, height, ima
             out = trainer.model.render(rays_o, rays_d, field_fn, background=background, sigma_fn=field.density)
             if out["n_samples"] == 0:
                 continue
-            (code.grad,) = torch.autograd.grad((out["rgb"] - image[py, px]).square().mean(), [code])
+            loss = (out["rgb"] - image[py, px]).square().mean() + pull * (code - mean).square().mean()
+            (code.grad,) = torch.autograd.grad(loss, [code])
             adam.step()
     return code.detach()
 
 
-@pytest.mark.parametrize("group_rays", [1 << 16, 48])  # one group, and a group of one iteration of 40 rays
-def test_fit_from_kept_samples_equals_rendering_every_iteration(trained, monkeypatch, group_rays):
+@pytest.mark.parametrize("group_rays,pull", [(1 << 16, 0.0), (48, 0.0), (1 << 16, 0.05)])  # one group; a group
+def test_fit_from_kept_samples_equals_rendering_every_iteration(trained, monkeypatch, group_rays, pull):  # of one iteration
     import ngp_warp.training.appearance_fit as appearance_fit
 
     monkeypatch.setattr(appearance_fit, "FIT_GROUP_RAYS", group_rays)
@@ -103,10 +106,10 @@ def test_fit_from_kept_samples_equals_rendering_every_iteration(trained, monkeyp
     known = mean + 2.0 * torch.randn(mean.shape, generator=torch.Generator().manual_seed(3))
     target = render(trained, known)
     fitted = fit_appearance_code(trained, **view(trained), image=target, background=0.5, iterations=25,
-                                 rays_per_iteration=40, seed=5)
+                                 rays_per_iteration=40, seed=5, pull=pull)
     want = fit_by_rendering_each_iteration(trained, **view(trained), image=target, background=0.5, iterations=25,
-                                           rays_per_iteration=40, seed=5)
-    assert (fitted - mean).norm() > 0.1  # it moved
+                                           rays_per_iteration=40, seed=5, pull=pull)
+    assert (fitted - mean).norm() > 0.02  # it moved
     torch.testing.assert_close(fitted, want, rtol=0, atol=1e-4)
 
 
@@ -130,6 +133,20 @@ def test_the_fit_starts_from_the_code_given(trained):
     assert torch.allclose(fit_appearance_code(trained, **view(trained), **still, start=codes[3]), codes[3], atol=1e-6)
     with pytest.raises(ValueError, match="start must be one code of"):
         fit_appearance_code(trained, **view(trained), **still, start=codes[:2])
+
+
+def test_the_pull_holds_the_code_toward_its_start(trained):
+    with trained.weights.averaged_in_field():
+        codes = trained.field.appearance.weight.detach().clone()
+    start = codes[3]
+    known = start + 2.0 * torch.randn(start.shape, generator=torch.Generator().manual_seed(11))
+    fit = dict(image=render(trained, known), background=0.0, start=start, **FIT)
+    distance = [(fit_appearance_code(trained, **view(trained), **fit, pull=pull) - start).norm().item()
+                for pull in (0.0, 0.01, 1e4)]
+    assert distance[0] > distance[1] > 0.0 and distance[2] < 0.05 * distance[0], distance
+    for bad in (-1.0, float("nan"), float("inf"), True, "0.1"):
+        with pytest.raises(ValueError, match="pull must be a finite number"):
+            fit_appearance_code(trained, **view(trained), **fit, pull=bad)
 
 
 def test_random_batches_are_seeded(trained):
@@ -160,15 +177,20 @@ def test_mistakes_are_one_line(trained, tmp_path):
 
 def test_evaluation_scores_the_right_half_with_the_fitted_code(trained, tmp_path):
     metrics = evaluate(trained, tmp_path, show_progress=False)
-    assert metrics["appearance"].startswith(f"code fitted on the left half ({FIT_ITERATIONS} iterations), "
-                                            f"scored on the right half; whole images with the nearest")
+    assert metrics["appearance"].startswith(f"code fitted on the left half ({FIT_ITERATIONS} iterations from the "
+                                            f"nearest training camera's code, pulled toward it with weight "
+                                            f"{FIT_PULL:g}), scored on the right half; whole images with the nearest")
     assert json.loads((tmp_path / "metrics.json").read_text())["appearance"] == metrics["appearance"]
     fitted = list(iter_test_renders(trained, fit_appearance=True))
     mean_code = list(iter_test_renders(trained))
     nearest = list(iter_test_renders(trained, nearest_code=True))
-    for record, (name, out, gt), (_, mean_out, _), (_, near_out, _) in zip(metrics["per_image"], fitted, mean_code,
-                                                                          nearest, strict=True):
+    for i, (record, (name, out, gt), (_, mean_out, _), (_, near_out, _)) in enumerate(zip(
+            metrics["per_image"], fitted, mean_code, nearest, strict=True)):
         assert record["image"] == name and out["appearance_code"].shape == (16,)
+        camera = view(trained, i)
+        from_nearest = fit_appearance_code(trained, **camera, image=gt, background=trained.view_background,
+                                           start=nearest_training_code(trained, camera["c2w"]))
+        assert torch.equal(out["appearance_code"], from_nearest)  # fitted from, and pulled toward, the nearest
         assert record["psnr"] == pytest.approx(psnr(right_half(out["rgb"]), right_half(gt)), abs=1e-9)
         assert record["psnr_mean_code"] == pytest.approx(psnr(mean_out["rgb"], gt), abs=1e-9)
         assert record["psnr_nearest_code"] == pytest.approx(psnr(near_out["rgb"], gt), abs=1e-9)

@@ -16,7 +16,7 @@ import torch
 
 from ngp_warp.progress import progress
 
-from ngp_warp.training.appearance_fit import (FIT_ITERATIONS, fit_appearance_and_pose, fit_appearance_code,
+from ngp_warp.training.appearance_fit import (FIT_ITERATIONS, FIT_PULL, fit_appearance_and_pose, fit_appearance_code,
                                      nearest_training_code, right_half)
 from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.outputs.lpips import lpips_scorer, lpips_summary
@@ -94,7 +94,8 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     one: ``Trainer.view_background``). With appearance codes
     every view is rendered with the mean code of the training images, with ``nearest_code`` the
     code of the training camera nearest to it (:func:`~ngp_warp.training.appearance_fit.nearest_training_code`),
-    or, with ``fit_appearance``, with the code fitted on the left half of its ground truth
+    or, with ``fit_appearance``, with the code fitted on the left half of its ground truth from
+    the nearest camera's and pulled toward it
     (:func:`~ngp_warp.training.appearance_fit.fit_appearance_code`, in the render dict as
     ``appearance_code`` [A]): score such a view on the right half only
     (:func:`~ngp_warp.training.appearance_fit.right_half`). When the run refined its training cameras
@@ -107,21 +108,21 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
     split = _cameras_on(trainer.scene.test if split is None else split, device)
     white = torch.ones(3, device=device)
     background = trainer.view_background
-    fit = fit_appearance and trainer.field.appearance is not None
+    codes = trainer.field.appearance is not None
+    fit = fit_appearance and codes
     for i in range(0, len(split.names), every):
         camera = split.camera(i)
         # without waiting for the device: CUDA stages a pageable host copy before the call returns
         gt = composite_on(split.images[i].to(device, non_blocking=True), white)
-        code = None
-        if nearest_code and trainer.field.appearance is not None and not fit:
-            code = nearest_training_code(trainer, camera["c2w"])
+        nearest = nearest_training_code(trainer, camera["c2w"]) if fit or nearest_code and codes else None
+        code = None if fit else nearest
         posed, moved = camera, fit and trainer.cameras is not None  # the fit moves the pose too
-        if moved:
-            code, c2w = fit_appearance_and_pose(trainer, **camera, image=gt, background=background)
+        if moved:  # the fit starts from the nearest camera's code and is pulled toward it
+            code, c2w = fit_appearance_and_pose(trainer, **camera, image=gt, background=background, start=nearest)
             posed = {**camera, "c2w": c2w}
         elif fit:
-            code = fit_appearance_code(trainer, **camera, image=gt, background=background)
-        others = (nearest_training_code(trainer, camera["c2w"]), None) if fit and whole_codes else ()
+            code = fit_appearance_code(trainer, **camera, image=gt, background=background, start=nearest)
+        others = (nearest, None) if fit and whole_codes else ()
         out = trainer.render_image(**posed, background=background, spp=spp, appearance_code=code,
                                    other_codes=() if moved else others)  # one set of samples at one pose
         if others and moved:  # the other codes' view is at the recorded pose: a render of its own
@@ -226,7 +227,8 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
             bar.update()
         bar.close()
     posed = " and pose" if trainer.cameras is not None else ""
-    appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations), scored on "
+    appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations from the nearest "
+                                f"training camera's code, pulled toward it with weight {FIT_PULL:g}), scored on "
                                 f"the right half; whole images with the nearest training camera's code "
                                 f"(psnr_nearest_code, its halves psnr_nearest_code_left and _right) and the mean "
                                 f"code (psnr_mean_code)",
