@@ -348,3 +348,33 @@ def test_host_copy_reads_the_values_of_its_start_not_later_ones(device):
     loss.fill_(-1.0)  # after the start: not in the copy
     assert copy.pending
     assert copy.read() == pytest.approx(expected, rel=1e-6) and not copy.pending
+
+
+def test_a_time_budget_s_bar_ends_at_its_total(tiny_scene, monkeypatch):
+    import io
+    import warnings
+
+    import ngp_warp.training.trainer as trainer_module
+
+    bars = []
+
+    def recorded(*args, **kwargs):
+        bars.append(progress(*args, **{**kwargs, "file": io.StringIO()}))
+        return bars[-1]
+
+    progress = trainer_module.progress_bar
+    monkeypatch.setattr(trainer_module, "progress_bar", recorded)
+    config = dataclasses.replace(tiny_config(1), steps=None, seconds=0.5)
+    trainer = Trainer(load_scene(tiny_scene), config, device="cpu")
+    step = trainer.step
+
+    def slow_step(progress_done):  # each step takes 0.6 s more: the first ends 0.1 s past the budget
+        stats = step(progress_done)
+        trainer.train_seconds += 0.6
+        return stats
+
+    monkeypatch.setattr(trainer, "step", slow_step)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # tqdm warns of a count past its total
+        trainer.train(show_progress=True)
+    assert trainer.train_seconds >= 0.6 and bars[0].n == bars[0].total == 0.5

@@ -241,10 +241,12 @@ class Trainer:
         # the bar counts steps, or seconds where only time ends the run (a time budget, no stop in steps alone)
         count_steps = steps is not None or (stop_steps is not None and stop_seconds is None)
 
-        def done() -> float:
-            return self.step_count - start_step if count_steps else round(self.train_seconds - start_seconds, 1)
-
         total = min(x for x in ((steps, stop_steps) if count_steps else (seconds, stop_seconds)) if x is not None)
+
+        def done() -> float:  # at most the total: a time budget's last step ends past it
+            return min(total, self.step_count - start_step if count_steps
+                       else round(self.train_seconds - start_seconds, 1))
+
         with progress_bar(desc=desc, total=total, unit="step" if count_steps else "s", disable=not show_progress,
                           dynamic_ncols=True) as bar:
             while True:
