@@ -35,7 +35,7 @@ from ngp_warp.training.trainer import Trainer
 FIT_ITERATIONS = 100
 FIT_LR = 1e-2
 FIT_PULL = 3e-3  # λ: on fox's held-out views (H200, 60 s, four runs), fitted from the nearest camera's
-                 # code, right halves +0.21 to +0.38 dB over no pull; 1e-3 and 1e-2 within 0.04 of it
+                 # code, right halves +0.21 to +0.38 dB over no pull; 1e-2 within 0.04 of it, 1e-3 within 0.08
 FIT_RAYS_PER_ITERATION = {"cuda": 4096, "cpu": 256}  # by device type
 FIT_GROUP_RAYS = 1 << 16  # rays whose samples are marched and kept at once
 POSE_LR = 1e-3            # a view's pose correction: Adam's first learning rate ...
