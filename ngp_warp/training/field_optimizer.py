@@ -55,7 +55,7 @@ class FieldOptimizer:
         self.averaged = [p.detach().clone() for p in self._params] if weight_average > 0 else None
         self._pending: tuple[float, float | None] | None = None  # (lr, average decay) of the deferred update
         self._in_field = 0  # averaged_in_field blocks open: the outermost swaps the weights
-        self._in_field_lock = threading.Lock()  # the evaluation's render threads open blocks inside its own
+        self._in_field_lock = threading.Lock()  # the count is shared: a block may open from any thread
         self.before_update: Callable[[], None] | None = None  # data-parallel: wait for the reduced gradients
         # The lazy table optimizer keeps the table's average; the rest are lerped after each update.
         self._lerped: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
@@ -129,8 +129,8 @@ class FieldOptimizer:
     def averaged_in_field(self):
         """The averaged weights in the field inside the block (when averaging is on), the live
         ones restored after it; either way the deferred update is applied first. A block opened
-        inside another (from any thread, e.g. each render inside an evaluation's) changes
-        nothing: the outermost swaps the weights once."""
+        inside another (from any thread; e.g. each render inside an evaluation's or a video's)
+        changes nothing: the outermost swaps the weights once."""
         with self._in_field_lock:
             outermost = self._in_field == 0
             self._in_field += 1
