@@ -60,8 +60,9 @@ def nearest_training_code(trainer: Trainer, c2w: torch.Tensor) -> torch.Tensor:
 
 
 def _check_fit_inputs(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, distortion,
-                      iterations: int, rays_per_iteration: int) -> None:
-    """One-line ValueErrors for a field without codes and for inputs of the wrong shape."""
+                      iterations: int, rays_per_iteration: int, pull) -> None:
+    """One-line ValueErrors for a field without codes, inputs of the wrong shape and a pull that
+    is not a finite number ≥ 0."""
     if trainer.field.appearance is None:
         raise ValueError("fit_appearance_code needs a field with appearance codes (appearance_dim > 0)")
     if type(width) is not int or type(height) is not int or width < 2 or height < 1:
@@ -76,6 +77,8 @@ def _check_fit_inputs(trainer: Trainer, c2w, intrinsics, width: int, height: int
     if type(iterations) is not int or iterations < 1 or type(rays_per_iteration) is not int or rays_per_iteration < 1:
         raise ValueError(f"iterations and rays_per_iteration must be ints ≥ 1, got {iterations!r}, "
                          f"{rays_per_iteration!r}")
+    if isinstance(pull, bool) or not isinstance(pull, (int, float)) or not 0.0 <= pull < float("inf"):
+        raise ValueError(f"pull must be a finite number ≥ 0, got {pull!r}")
 
 
 def _left_half_pixels(width: int, height: int, iterations: int, rays: int, seed: int) -> tuple[torch.Tensor, ...]:
@@ -184,9 +187,8 @@ def _fit(trainer: Trainer, c2w, intrinsics, width: int, height: int, image, dist
     dev, field = trainer.device, trainer.field
     if rays_per_iteration is None:
         rays_per_iteration = FIT_RAYS_PER_ITERATION.get(dev.type, FIT_RAYS_PER_ITERATION["cuda"])
-    _check_fit_inputs(trainer, c2w, intrinsics, width, height, image, distortion, iterations, rays_per_iteration)
-    if isinstance(pull, bool) or not isinstance(pull, (int, float)) or not 0.0 <= pull < float("inf"):
-        raise ValueError(f"pull must be a finite number ≥ 0, got {pull!r}")
+    _check_fit_inputs(trainer, c2w, intrinsics, width, height, image, distortion, iterations, rays_per_iteration,
+                      pull)
     target_image = image.to(dev, torch.float32)
     c2w_n, intr_n = c2w.to(dev, torch.float32)[None], intrinsics.to(dev, torch.float32)[None]
     dist_n = None if distortion is None else distortion.to(dev, torch.float32)[None]
