@@ -6,9 +6,13 @@ For one held-out view (default: the run's worst in metrics.json) renders a rando
 pixels (one ray each, the mean appearance code) and splits each ray's weights at 0.8 × the
 distance of its largest weight (the surface): the weight in front of it is "front" weight. Prints
 how much of the view has front weight above 0.05 and 0.2, where along the rays it sits (as a
-fraction of the surface distance and in world units) and how far those points are from the
-nearest training camera and from this view's camera. Floaters hugging training cameras point to
-near-camera fog (gradient scaling near cameras); floaters mid-air to under-constrained space.
+fraction of the surface distance and in world units), how far those points are from the
+nearest training camera, and how many training images hold them farther than the rays' near
+distance (the training rays that reach them; lens distortion left out). Floaters hugging
+training cameras point to near-camera fog (gradient scaling near cameras); floaters that no
+training image holds, to space the field extrapolates into (the occupancy grid's visible cells
+reach past the images' borders by up to a cell); floaters mid-air in many images, to
+under-constrained space.
 """
 
 from __future__ import annotations
@@ -50,6 +54,21 @@ def front_weights(trainer, camera: dict, n_rays: int, seed: int = 0) -> dict:
                                                   points=points).items()}
 
 
+def training_images_holding(trainer, points: np.ndarray) -> np.ndarray:
+    """[P] int: how many training images hold each world point [P, 3] (pinhole projection inside
+    the image, in front of the camera and farther than the rays' near distance from it)."""
+    split, near = trainer.scene.train, trainer.model.march.near
+    c2w, k = split.c2w.double().numpy(), split.intrinsics.double().numpy()
+    rel = points.astype(np.float64)[:, None, :] - c2w[None, :, :, 3]      # [P, N, 3]
+    local = np.einsum("pnk,nkj->pnj", rel, c2w[:, :, :3])                 # camera frame (OpenGL)
+    depth = np.maximum(-local[..., 2], 1e-12)
+    u = k[None, :, 0] * local[..., 0] / depth + k[None, :, 2]
+    v = k[None, :, 3] - k[None, :, 1] * local[..., 1] / depth
+    held = (-local[..., 2] > 0) & (np.linalg.norm(rel, axis=-1) > near)
+    held &= (u >= 0) & (u <= split.width) & (v >= 0) & (v <= split.height)
+    return held.sum(1)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run")
@@ -74,19 +93,21 @@ def main() -> None:
     print(f"view {view}: median surface distance {surface:.3f}; nearest training camera "
           f"{np.linalg.norm(centres - own, axis=1).min():.3f} from this camera")
     print("| front weight > | share of rays | t / t_surface (10/50/90 %) | t (world) | to nearest training camera "
-          "(10/50/90 %) |")
-    print("| ---: | ---: | --- | --- | --- |")
+          "(10/50/90 %) | training images holding it (10/50/90 %) | held by none |")
+    print("| ---: | ---: | --- | --- | --- | --- | ---: |")
     for level in (0.05, 0.2):
         sel = r["front"] > level
         if not sel.any():
-            print(f"| {level} | 0 | | | |")
+            print(f"| {level} | 0 | | | | | |")
             continue
         rel = np.percentile(r["t_front"][sel] / np.maximum(r["t_surface"][sel], 1e-6), [10, 50, 90])
         tw = np.percentile(r["t_front"][sel], [10, 50, 90])
         near = np.linalg.norm(r["points"][sel][:, None] - centres[None], axis=-1).min(1)
         nq = np.percentile(near, [10, 50, 90])
+        held = training_images_holding(trainer, r["points"][sel])
         fmt = lambda q: " / ".join(f"{v:.3f}" for v in q)  # noqa: E731
-        print(f"| {level} | {sel.mean():.3f} | {fmt(rel)} | {fmt(tw)} | {fmt(nq)} |")
+        print(f"| {level} | {sel.mean():.3f} | {fmt(rel)} | {fmt(tw)} | {fmt(nq)} | "
+              f"{' / '.join(f'{v:.0f}' for v in np.percentile(held, [10, 50, 90]))} | {(held == 0).mean():.2f} |")
 
 
 if __name__ == "__main__":
