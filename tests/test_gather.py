@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from ngp_warp._reference import gather as ref
-from ngp_warp.ops.gather import RUN, embedding_rows, gather_rows, scatter_rows
+from ngp_warp.ops.gather import RUN, _words, embedding_rows, gather_rows, gather_words, scatter_rows, scatter_words
 
 CASES = [  # (shape, dtype): h in bf16, positions, sigmas, int64 indices, int32 offsets, bool (fallback), odd bf16
     ((500, 16), torch.bfloat16), ((500, 3), torch.float32), ((500,), torch.float32), ((500,), torch.int64),
@@ -29,13 +29,19 @@ def test_gather_and_scatter_match_the_row_by_row_twins(device, shape, dtype):
     src = random_rows_of(shape, dtype, g).to(device)
     rows = torch.randperm(shape[0], generator=g)[:300].sort().values.to(device)  # sorted, as the renderer's
     rows[::7] = rows[::7].flip(0)  # and some out of order
-    got = gather_rows(src, rows)
-    assert got.dtype == dtype and torch.equal(got.cpu(), ref.gather_rows(src.cpu(), rows.cpu()))
     values = random_rows_of((300, *shape[1:]), dtype, g).to(device)
-    dst, want = src.clone(), src.cpu().clone()
-    scatter_rows(dst, rows, values)
+    want = src.cpu().clone()
     ref.scatter_rows(want, rows.cpu(), values.cpu())
-    assert torch.equal(dst.cpu(), want) and not torch.equal(dst.cpu(), src.cpu())
+    words = _words(src)
+    kernel = [] if words is None else [(lambda s, r: gather_words(s, r, words),
+                                        lambda d, r, v: scatter_words(d, r, v, words))]
+    for gather, scatter in [(gather_rows, scatter_rows), *kernel]:  # the kernels on this device too
+        got = gather(src, rows)
+        assert got.dtype == dtype and torch.equal(got.cpu(), ref.gather_rows(src.cpu(), rows.cpu()))
+        dst = src.clone()
+        scatter(dst, rows, values)
+        assert torch.equal(dst.cpu(), want) and not torch.equal(dst.cpu(), src.cpu())
+    assert bool(kernel) == (dtype != torch.bool and (shape, dtype) != ((500, 3), torch.bfloat16))  # whole words
 
 
 def test_empty_rows_and_sources_the_kernel_cannot_take():

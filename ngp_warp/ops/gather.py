@@ -4,8 +4,10 @@ in one Warp launch of one thread per 4-byte word (see :mod:`ngp_warp.kernels.gat
 
 torch's own advanced indexing moves narrow rows (a sample's 16 bf16 features, its 12-byte
 position) with one thread per row or per element, well below the memory's bandwidth on a GPU
-(RESULTS.md); its embedding backward sorts every index. No gradient flows through
-:func:`gather_rows` and :func:`scatter_rows`.
+(RESULTS.md); its embedding backward sorts every index. On the CPU, where a Warp launch runs on
+one thread, torch's indexing is the faster one and :func:`gather_rows` and :func:`scatter_rows`
+use it (the kernels stay reachable there through :func:`gather_words` and :func:`scatter_words`).
+No gradient flows through :func:`gather_rows` and :func:`scatter_rows`.
 """
 
 from __future__ import annotations
@@ -41,11 +43,18 @@ def _check(name: str, t: torch.Tensor, rows: torch.Tensor) -> None:
 
 def gather_rows(src: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     """``src[rows]``: src [N, ...] any dtype, rows [K] int64 in [0, N) (not checked) → [K, ...].
-    Rows that are not whole 4-byte words go through torch's indexing."""
+    On CUDA one Warp launch (:func:`gather_words`); on the CPU, and for rows that are not whole
+    4-byte words, torch's indexing."""
     _check("src", src, rows)
     words = _words(src)
-    if words is None or rows.shape[0] * words > _MAX_WORDS:
+    if src.device.type != "cuda" or words is None or rows.shape[0] * words > _MAX_WORDS:
         return src[rows]
+    return gather_words(src, rows, words)
+
+
+def gather_words(src: torch.Tensor, rows: torch.Tensor, words: int) -> torch.Tensor:
+    """The kernel's ``src[rows]`` on any device: src [N, ...] with ``words`` = :func:`_words` of it
+    (not None), rows [K] int64 in [0, N) → [K, ...] of src's dtype."""
     out = torch.empty((rows.shape[0], *src.shape[1:]), dtype=src.dtype, device=src.device)
     _wp.launch(K.gather_words, rows.shape[0] * words,
                [src.reshape(-1).view(torch.int32), rows, words, out.reshape(-1).view(torch.int32)], _wp.device_of(src))
@@ -54,16 +63,24 @@ def gather_rows(src: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
 
 def scatter_rows(dst: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) -> None:
     """``dst[rows] = values`` in place: dst [N, ...], rows [K] int64, distinct, in [0, N) (not
-    checked), values [K, ...] of dst's dtype and row shape."""
+    checked), values [K, ...] of dst's dtype and row shape. On CUDA one Warp launch
+    (:func:`scatter_words`); on the CPU, and for rows that are not whole 4-byte words, torch's
+    indexing."""
     _check("dst", dst, rows)
     if (not isinstance(values, torch.Tensor) or values.dtype != dst.dtype or values.device != dst.device
             or tuple(values.shape) != (rows.shape[0], *dst.shape[1:])):
         raise ValueError(f"values must be {dst.dtype} {[rows.shape[0], *dst.shape[1:]]} on {dst.device}, got "
                          f"{getattr(values, 'dtype', type(values).__name__)} {list(getattr(values, 'shape', []))}")
     words = _words(dst)
-    if words is None or _words(values) != words or rows.shape[0] * words > _MAX_WORDS:
+    if dst.device.type != "cuda" or words is None or _words(values) != words or rows.shape[0] * words > _MAX_WORDS:
         dst[rows] = values
         return
+    scatter_words(dst, rows, values, words)
+
+
+def scatter_words(dst: torch.Tensor, rows: torch.Tensor, values: torch.Tensor, words: int) -> None:
+    """The kernel's ``dst[rows] = values`` on any device: dst [N, ...] and values [K, ...] of one
+    dtype and row shape, contiguous, ``words`` = :func:`_words` of both; rows [K] int64, distinct."""
     _wp.launch(K.scatter_words, rows.shape[0] * words,
                [values.reshape(-1).view(torch.int32), rows, words, dst.reshape(-1).view(torch.int32)], _wp.device_of(dst))
 
