@@ -1,5 +1,5 @@
 """Occupancy-grid kernels: cascade geometry, cell sampling, max-EMA update, bitfield packing,
-visibility marking.
+visibility marking, and the refresh's test of what the training cameras see.
 
 Layout shared with :mod:`ngp_warp.kernels.raymarch`. ``aabb = (min_xyz, max_xyz)`` is the base box
 with centre ``c`` and half extent ``h``; cascade ``l`` covers ``c ± h·2^l``. Each level is an
@@ -213,19 +213,27 @@ def pack_mip(
 
 
 @wp.func
+def project(p: wp.vec3, c2w: wp.array2d(dtype=float), intr: wp.array2d(dtype=float), cam: int) -> wp.vec4:
+    """OpenGL camera (looks down −z, +y up): (u, v, depth, distance) with u = fx·x/(−z) + cx,
+    v = cy − fy·y/(−z), depth = −z; u and v are 0 behind the camera (depth ≤ 0)."""
+    d = wp.vec3(p[0] - c2w[cam, 3], p[1] - c2w[cam, 7], p[2] - c2w[cam, 11])
+    x = c2w[cam, 0] * d[0] + c2w[cam, 4] * d[1] + c2w[cam, 8] * d[2]
+    y = c2w[cam, 1] * d[0] + c2w[cam, 5] * d[1] + c2w[cam, 9] * d[2]
+    depth = -(c2w[cam, 2] * d[0] + c2w[cam, 6] * d[1] + c2w[cam, 10] * d[2])
+    u = float(0.0)
+    v = float(0.0)
+    if depth > 0.0:
+        u = intr[cam, 0] * x / depth + intr[cam, 2]
+        v = intr[cam, 3] - intr[cam, 1] * y / depth
+    return wp.vec4(u, v, depth, wp.length(d))
+
+
+@wp.func
 def corner_seen(p: wp.vec3, c2w: wp.array2d(dtype=float), intr: wp.array2d(dtype=float), cam: int,
                 width: float, height: float, near_plane: float) -> bool:
-    """OpenGL camera (looks down −z, +y up): u = fx·x/(−z) + cx, v = cy − fy·y/(−z)."""
-    v = wp.vec3(p[0] - c2w[cam, 3], p[1] - c2w[cam, 7], p[2] - c2w[cam, 11])
-    x = c2w[cam, 0] * v[0] + c2w[cam, 4] * v[1] + c2w[cam, 8] * v[2]
-    y = c2w[cam, 1] * v[0] + c2w[cam, 5] * v[1] + c2w[cam, 9] * v[2]
-    depth = -(c2w[cam, 2] * v[0] + c2w[cam, 6] * v[1] + c2w[cam, 10] * v[2])
-    seen = False
-    if depth > near_plane and depth > 0.0:
-        u = intr[cam, 0] * x / depth + intr[cam, 2]
-        w = intr[cam, 3] - intr[cam, 1] * y / depth
-        seen = u >= 0.0 and u <= width and w >= 0.0 and w <= height
-    return seen
+    """In camera ``cam``'s image (0 ≤ u ≤ width, 0 ≤ v ≤ height), in front of its near plane."""
+    q = project(p, c2w, intr, cam)
+    return q[2] > near_plane and q[2] > 0.0 and q[0] >= 0.0 and q[0] <= width and q[1] >= 0.0 and q[1] <= height
 
 
 # A cell is visible when any of its 8 corners projects into any camera's image in front of its
@@ -266,3 +274,36 @@ def mark_visible(
         occs[i] = wp.max(occs[i], 0.0)
     else:
         occs[i] = -1.0
+
+
+# Density that no training ray samples holds no cell: a refresh's sample point p counts only where
+# some training camera sees it, σ ← seen(p) ? σ : 0, with seen(p) = ∃ camera: depth > 0,
+# |p − o| > near (its rays start there), −m ≤ u ≤ W + m and −m ≤ v ≤ H + m (m covers the pinhole
+# projection's error at the border of a distorted image). Cells that an image holds only at its
+# border would otherwise fill with what the field extrapolates beside the image, which held-out
+# views see as floaters.
+@wp.kernel
+def zero_unseen(
+    first: int,
+    points: wp.array(dtype=wp.vec3),
+    c2w: wp.array2d(dtype=float),
+    intr: wp.array2d(dtype=float),
+    n_cams: int,
+    width: float,
+    height: float,
+    near: float,
+    margin: float,
+    values: wp.array(dtype=float),
+):
+    i = first + wp.tid()
+    p = points[i]
+    seen = int(0)
+    cam = int(0)
+    while cam < n_cams and seen == 0:
+        q = project(p, c2w, intr, cam)
+        if q[2] > 0.0 and q[3] > near and q[0] >= -margin and q[0] <= width + margin:
+            if q[1] >= -margin and q[1] <= height + margin:
+                seen = 1
+        cam += 1
+    if seen == 0:
+        values[i] = 0.0

@@ -80,3 +80,19 @@ def visible_cells(aabb, resolution, levels, c2w, intrinsics, width, height, near
         ok &= (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
         seen |= ok.any(-1)
     return seen
+
+
+def zero_unseen(points, values, c2w, intrinsics, width, height, near=0.0, margin=0.0):
+    """values [M] float64 with 0 where no OpenGL camera sees points [M, 3]: in its image grown by
+    margin pixels, in front of it and farther than near from it."""
+    p = points.to(f64).cpu()
+    seen = torch.zeros(p.shape[0], dtype=torch.bool)
+    for m, (fx, fy, cx, cy) in zip(c2w.to(f64).cpu(), intrinsics.to(f64).cpu()):
+        d = p - m[:3, 3]
+        cam = d @ m[:3, :3]
+        depth = -cam[:, 2]
+        ok = (depth > 0) & (d.norm(dim=-1) > near)
+        u = fx * cam[:, 0] / depth + cx
+        v = cy - fy * cam[:, 1] / depth
+        seen |= ok & (u >= -margin) & (u <= width + margin) & (v >= -margin) & (v <= height + margin)
+    return torch.where(seen, values.to(f64).cpu(), torch.zeros((), dtype=f64))

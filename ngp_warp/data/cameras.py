@@ -20,7 +20,7 @@ from ngp_warp.kernels import batch as K
 # one iteration count and one set of lens codes for the torch and Warp twins
 from ngp_warp.kernels.batch import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, UNDISTORT_ITERATIONS
 
-__all__ = ["generate_rays", "view_rays", "undistort", "fisheye_ray", "LENS_PINHOLE", "LENS_OPENCV", "LENS_FISHEYE"]
+__all__ = ["generate_rays", "view_rays", "undistort", "fisheye_ray", "pinhole_border_error", "LENS_PINHOLE", "LENS_OPENCV", "LENS_FISHEYE"]
 
 
 def _check(t: torch.Tensor, name: str, shape: tuple, like: torch.Tensor | None = None) -> None:
@@ -77,6 +77,28 @@ def undistort(xd: torch.Tensor, yd: torch.Tensor, distortion: torch.Tensor) -> t
         x = x - (jyy * ex - jxy * ey) / det
         y = y - (jxx * ey - jyx * ex) / det
     return x, y
+
+
+def pinhole_border_error(intrinsics: torch.Tensor, distortion: torch.Tensor, width: int, height: int,
+                         samples: int = 64) -> float:
+    """The most pixels by which the pinhole projection of a radial-tangential lens's ray misses
+    its pixel, over ``samples`` points on each side of the image border (where the lens bends
+    rays most): how far a pinhole test of what an image holds must grow the image.
+
+    Args:
+        intrinsics: [N, 4] float fx, fy, cx, cy. distortion: [N, 6] float k1, k2, k3, k4, p1, p2.
+        width, height: image size in pixels.
+    """
+    t = torch.linspace(0.0, 1.0, samples, dtype=torch.float64)
+    zeros, ones = torch.zeros_like(t), torch.ones_like(t)
+    u = torch.cat([t, t, zeros, ones]) * width
+    v = torch.cat([zeros, ones, t, t]) * height
+    fx, fy, cx, cy = intrinsics.detach().cpu().double()[:, None, :].unbind(-1)  # each [N, 1]
+    xd, yd = (u - cx) / fx, (v - cy) / fy  # [N, 4·samples]
+    lens = distortion.detach().cpu().double()[:, None, :].expand(-1, u.numel(), -1).reshape(-1, 6)
+    x, y = undistort(xd.reshape(-1), yd.reshape(-1), lens)
+    error = torch.maximum((x.reshape(xd.shape) - xd).abs() * fx, (y.reshape(yd.shape) - yd).abs() * fy)
+    return float(error.max())
 
 
 def fisheye_ray(xd: torch.Tensor, yd: torch.Tensor, distortion: torch.Tensor) -> torch.Tensor:

@@ -58,6 +58,23 @@ def _parse_aabb(aabb) -> list[float]:
     return values.tolist()
 
 
+def _camera_rows(c2w, intrinsics, width: int, height: int, dev: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Checked cameras as the kernels take them: [N, 12] float32 c2w rows, [N, 4] intrinsics."""
+    if not isinstance(c2w, torch.Tensor) or c2w.dim() not in (2, 3) or tuple(c2w.shape[-2:]) not in ((3, 4), (4, 4)):
+        raise ValueError(f"c2w must be a [N, 3, 4] or [N, 4, 4] tensor, got {getattr(c2w, 'shape', c2w)}")
+    c2w = c2w.reshape(-1, *c2w.shape[-2:])
+    if not isinstance(intrinsics, torch.Tensor) or intrinsics.shape[-1:] != (4,) or intrinsics.dim() > 2:
+        raise ValueError(f"intrinsics must be a [N, 4] tensor (fx, fy, cx, cy), got {getattr(intrinsics, 'shape', intrinsics)}")
+    intrinsics = intrinsics.reshape(-1, 4).expand(c2w.shape[0], 4) if intrinsics.numel() == 4 else intrinsics
+    if intrinsics.shape[0] != c2w.shape[0]:
+        raise ValueError(f"c2w holds {c2w.shape[0]} cameras but intrinsics {intrinsics.shape[0]}")
+    if width <= 0 or height <= 0:
+        raise ValueError(f"width and height must be positive, got {width}×{height}")
+    c2w_flat = c2w[:, :3, :4].to(device=dev, dtype=torch.float32).reshape(-1, 12).contiguous()
+    intr = intrinsics.to(device=dev, dtype=torch.float32).contiguous()
+    return c2w_flat, intr
+
+
 class OccupancyGrid(nn.Module):
     """Occupancy grid over ``levels`` cascades of ``resolution³`` cells.
 
@@ -119,6 +136,10 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("mips", torch.ones(levels * self.mip_cells, dtype=torch.uint8, device=device),
                              persistent=False)
         self._mips_key = None
+        # count_seen_only's cameras ([N, 12] c2w rows, [N, 4] intrinsics) and (width, height, near, margin)
+        self.register_buffer("_seen_c2w", None, persistent=False)
+        self.register_buffer("_seen_intrinsics", None, persistent=False)
+        self._seen_frame: tuple[float, float, float, float] | None = None
         # data-parallel training: merges an update's per-cell sample maxima ([n_cells] float32,
         # -1 where none) over the ranks, in place, so that every rank's grid stays the same
         self.merge_samples: Callable[[torch.Tensor], None] | None = None
@@ -178,6 +199,7 @@ class OccupancyGrid(nn.Module):
         During warm-up (``step < warmup_steps``) every cell is evaluated at a jittered point
         inside it; afterwards ``n_cells // 4`` uniformly drawn cells plus as many drawn from the
         occupied ones (uniformly among them, by bisection of their prefix count; no host sync).
+        After :meth:`count_seen_only`, a point that none of its cameras sees counts as σ = 0.
         Then ``occ ← max(occ·ema_decay, σ)`` on sampled visible cells (the max of all samples
         of a cell) and ``occupied = occ > min(occ_threshold, mean visible occ)``.
 
@@ -212,6 +234,9 @@ class OccupancyGrid(nn.Module):
                 shape = tuple(values.shape) if isinstance(values, torch.Tensor) else type(values).__name__
                 raise ValueError(f"density_fn must return [{m}] or [{m}, 1] densities, got {shape}")
             values = values.detach().reshape(m).to(torch.float32).contiguous()
+            if self._seen_frame is not None:
+                _wp.launch(K.zero_unseen, m, [points, self._seen_c2w, self._seen_intrinsics,
+                                              self._seen_c2w.shape[0], *self._seen_frame, values], device)
             # Scatter-max into arbitrary cells: one CPU thread (align=m), as CPU atomics are not atomic.
             _wp.launch(K.splat_max, m, [cells, values, self._splat], device, align=m)
         if self.merge_samples is not None:
@@ -238,19 +263,7 @@ class OccupancyGrid(nn.Module):
             intrinsics: [N, 4] (or [4]) float ``fx, fy, cx, cy`` in pixels.
             width, height: image size in pixels.
         """
-        if not isinstance(c2w, torch.Tensor) or c2w.dim() not in (2, 3) or tuple(c2w.shape[-2:]) not in ((3, 4), (4, 4)):
-            raise ValueError(f"c2w must be a [N, 3, 4] or [N, 4, 4] tensor, got {getattr(c2w, 'shape', c2w)}")
-        c2w = c2w.reshape(-1, *c2w.shape[-2:])
-        if not isinstance(intrinsics, torch.Tensor) or intrinsics.shape[-1:] != (4,) or intrinsics.dim() > 2:
-            raise ValueError(f"intrinsics must be a [N, 4] tensor (fx, fy, cx, cy), got {getattr(intrinsics, 'shape', intrinsics)}")
-        intrinsics = intrinsics.reshape(-1, 4).expand(c2w.shape[0], 4) if intrinsics.numel() == 4 else intrinsics
-        if intrinsics.shape[0] != c2w.shape[0]:
-            raise ValueError(f"c2w holds {c2w.shape[0]} cameras but intrinsics {intrinsics.shape[0]}")
-        if width <= 0 or height <= 0:
-            raise ValueError(f"width and height must be positive, got {width}×{height}")
-        dev = self.occs.device
-        c2w_flat = c2w[:, :3, :4].to(device=dev, dtype=torch.float32).reshape(-1, 12).contiguous()
-        intr = intrinsics.to(device=dev, dtype=torch.float32).contiguous()
+        c2w_flat, intr = _camera_rows(c2w, intrinsics, width, height, self.occs.device)
         _wp.launch(
             K.mark_visible, self.n_cells,
             [self.aabb, self.resolution, KINDS.get(self.contraction, -1),
@@ -259,6 +272,28 @@ class OccupancyGrid(nn.Module):
             _wp.device_of(self.occs),
         )
         self._pack()
+
+    @torch.no_grad()
+    def count_seen_only(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int,
+                        near: float = 0.0, margin: float = 0.0) -> None:
+        """From now on, :meth:`update` counts a sample point's density only where one of these
+        cameras sees it: in its image grown by ``margin`` pixels on every side, in front of it
+        and farther than ``near`` from it. A training ray samples no other point, so density
+        there is what the field extrapolates beside the images; held-out views see it as
+        floaters in the cells that an image holds only at its border.
+
+        Args:
+            c2w: [N, 3, 4] or [N, 4, 4] (or one) float camera-to-world matrices, OpenGL convention.
+            intrinsics: [N, 4] (or [4]) float ``fx, fy, cx, cy`` in pixels.
+            width, height: image size in pixels.
+            near: distance from a camera (world units, ≥ 0) where its rays start.
+            margin: pixels (≥ 0) by which the pinhole projection may miss a distorted lens's pixel.
+        """
+        for name, value in (("near", near), ("margin", margin)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < math.inf:
+                raise ValueError(f"{name} must be a finite number ≥ 0, got {value!r}")
+        self._seen_c2w, self._seen_intrinsics = _camera_rows(c2w, intrinsics, width, height, self.occs.device)
+        self._seen_frame = (float(width), float(height), float(near), float(margin))
 
     def _draw(self, lo: int, m: int, warmup: bool, n_uniform: int, seed: int,
               prefix: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:

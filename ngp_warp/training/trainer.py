@@ -21,6 +21,7 @@ from ngp_warp.ops.batch import sample_pixels
 from ngp_warp.training.camera_refinement import CameraRefinement
 from ngp_warp.ops.optim import Adam
 from ngp_warp.training.config import TrainConfig, default_device, default_target_samples, resolve_defaults
+from ngp_warp.data.cameras import pinhole_border_error
 from ngp_warp.data.loading import Scene, Split
 from ngp_warp.ops.distortion import distortion_loss_packed
 from ngp_warp.ops.field import NGPField
@@ -90,9 +91,13 @@ class Trainer:
             density=self.training_field.density, field=self.training_field,
             optimizer_update=self.weights.flush, loss=ray_loss, distortion=distortion_loss_packed,
             backward=backward)
-        self.grid.mark_invisible_cells(
-            self.train_split.c2w, self.train_split.intrinsics, self.train_split.width, self.train_split.height
-        )
+        split = self.train_split
+        self.grid.mark_invisible_cells(split.c2w, split.intrinsics, split.width, split.height)
+        if cfg.grid_seen_only and not split.fisheye:  # a fisheye lens has no pinhole test
+            lens = pinhole_border_error(split.intrinsics, split.distortion, split.width, split.height) \
+                if split.has_distortion else 0.0
+            self.grid.count_seen_only(split.c2w, split.intrinsics, split.width, split.height,
+                                      near=self.model.march.near, margin=1.0 + lens)
 
     def _camera_refinement(self, cfg: TrainConfig) -> tuple[CameraRefinement | None, Adam | None]:
         """The training images' pose corrections and their optimizer, with ``camera_refinement``
