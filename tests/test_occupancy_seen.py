@@ -75,8 +75,9 @@ def test_pinhole_border_error_is_how_far_the_lens_moves_a_border_pixel():
 
 
 def test_training_refreshes_count_what_the_training_rays_can_sample(tmp_path):
-    """The trainer tests points against its training cameras at the march's near: a refresh from
-    the same weights and draws keeps every density but those of unseen points, which it zeroes."""
+    """With grid_seen_only (off by default), the trainer tests points against its training cameras
+    at the march's near: a refresh from the same weights and draws keeps every density but those
+    of unseen points, which it zeroes."""
     from ngp_warp.data.loading import load_scene
     from ngp_warp.data.scene import write_demo_scene
     from ngp_warp.training.trainer import Trainer
@@ -84,6 +85,7 @@ def test_training_refreshes_count_what_the_training_rays_can_sample(tmp_path):
 
     write_demo_scene(tmp_path / "demo", width=32, height=32, n_train=12, n_test=1)
     scene = load_scene(tmp_path / "demo")
+    assert not Trainer(scene, tiny_config(1), device="cpu").config.grid_seen_only
     occs = {}
     for seen_only in (True, False):
         cfg = tiny_config(1)

@@ -53,8 +53,9 @@ class TrainConfig:
                                         # one step, σ·step, exceeds min(this, the mean); None: per scene
                                         # (instant-ngp's 0.01 on NeRF-synthetic, 0.05 on captures)
     occupancy_decay: float = 0.95       # each grid refresh (every 16 steps) scales old estimates by this
-    grid_seen_only: bool = True         # a refresh counts density only at points that a training ray
-                                        # can sample (some training image holds them, past the near)
+    grid_seen_only: bool = False        # a refresh counts density only at points that a training ray
+                                        # can sample (some training image holds them, past the near);
+                                        # pinhole and OpenCV lenses (fisheye: ignored)
     mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
                                         # field's graphs, "tf32" matmuls, or "fp32"
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
