@@ -101,6 +101,21 @@ def test_a_probe_that_finds_an_object_keeps_the_box_and_environment_given(sky, m
     assert trainer.config.field.environment is False and trainer.field.environment is None  # as given
 
 
+def test_the_probe_counts_every_points_density_and_the_run_keeps_grid_seen_only(sky, monkeypatch):
+    monkeypatch.setattr(probe, "PROBE_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_MIN_STEPS", 4)
+    monkeypatch.setattr(probe, "PROBE_BUDGET_SHARE", 0.5)
+    made = []
+
+    def make_trainer(scene, config, device):
+        made.append(config.grid_seen_only)
+        return Trainer(scene, config, device)
+
+    trainer, seen = probe.probed_trainer(sky, small(steps=8, contraction_fit="probe", grid_seen_only=True), "cpu",
+                                         make_trainer=make_trainer)
+    assert seen.steps == 4 and made == [False, True] and trainer.grid._seen_frame is not None
+
+
 @pytest.mark.parametrize("score, steps, chosen", [(-1.0, 10, "bounded"), (3.0, 20, "cameras")])
 def test_a_probe_ends_at_the_first_reading_that_tells_an_object(sky, monkeypatch, score, steps, chosen):
     monkeypatch.setattr(probe, "PROBE_STEPS", 20)
