@@ -1,5 +1,6 @@
 """Range checks shared by the configuration dataclasses, and the boxes' value check."""
 
+import math
 from numbers import Integral, Real
 
 import torch
@@ -25,3 +26,11 @@ def check_numbers(config, counts=(), positive=(), non_negative=(), optional=()) 
                 raise ValueError(f"{name} must be an integer ≥ 1, got {value!r}")
         elif isinstance(value, bool) or not isinstance(value, Real) or not (value > 0 if name in positive else value >= 0):
             raise ValueError(f"{name} must be a number {'>' if name in positive else '≥'} 0, got {value!r}")
+
+
+def check_distances(**values) -> None:
+    """ValueError for the first keyword argument that is not a finite number ≥ 0 (a bool is not
+    a number here)."""
+    for name, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, Real) or not 0 <= value < math.inf:
+            raise ValueError(f"{name} must be a finite number ≥ 0, got {value!r}")

@@ -3,11 +3,10 @@ returns them): a Warp forward and a hand-written backward."""
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from ngp_warp import _wp
+from ngp_warp._checks import check_distances
 from ngp_warp.ops._differentiable_once import refuse_second_derivative
 from ngp_warp.kernels import distortion as K
 
@@ -87,9 +86,8 @@ def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch
         raise ValueError(f"ray_indices must be [{n}] int64 on {weights.device}")
     if not isinstance(n_rays, int) or n_rays < 0:
         raise ValueError(f"n_rays must be a non-negative int, got {n_rays!r}")
-    if not isinstance(near, (int, float)) or not math.isfinite(near) or near < 0:
-        raise ValueError(f"near must be a finite number >= 0, got {near!r}")
+    check_distances(near=near)
     _wp.device_of(weights)
     # offsets[r] = first sample of ray r (binary search: rows past the last ray are left out)
     offsets = torch.searchsorted(ray_indices, torch.arange(n_rays + 1, device=weights.device), out_int32=True)
-    return distortion_loss_packed(weights.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets, near)
+    return distortion_loss_packed(weights.contiguous(), t_starts.contiguous(), t_ends.contiguous(), offsets, float(near))

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from ngp_warp import _wp
-from ngp_warp._checks import check_aabb_values
+from ngp_warp._checks import check_aabb_values, check_distances
 from ngp_warp.ops.contraction import KINDS, uncontract
 from ngp_warp.kernels import occupancy as K
 from ngp_warp.ops.op_registry import register
@@ -289,9 +289,7 @@ class OccupancyGrid(nn.Module):
             near: distance from a camera (world units, ≥ 0) where its rays start.
             margin: pixels (≥ 0) by which the pinhole projection may miss a distorted lens's pixel.
         """
-        for name, value in (("near", near), ("margin", margin)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < math.inf:
-                raise ValueError(f"{name} must be a finite number ≥ 0, got {value!r}")
+        check_distances(near=near, margin=margin)
         self._seen_c2w, self._seen_intrinsics = _camera_rows(c2w, intrinsics, width, height, self.occs.device)
         self._seen_frame = (float(width), float(height), float(near), float(margin))
 

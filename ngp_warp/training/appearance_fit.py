@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import torch
 
+from ngp_warp._checks import check_distances
 from ngp_warp.training.camera_refinement import CameraRefinement
 from ngp_warp.ops.optim import Adam
 from ngp_warp.data.cameras import generate_rays
@@ -77,8 +78,7 @@ def _check_fit_inputs(trainer: Trainer, c2w, intrinsics, width: int, height: int
     if type(iterations) is not int or iterations < 1 or type(rays_per_iteration) is not int or rays_per_iteration < 1:
         raise ValueError(f"iterations and rays_per_iteration must be ints ≥ 1, got {iterations!r}, "
                          f"{rays_per_iteration!r}")
-    if isinstance(pull, bool) or not isinstance(pull, (int, float)) or not 0.0 <= pull < float("inf"):
-        raise ValueError(f"pull must be a finite number ≥ 0, got {pull!r}")
+    check_distances(pull=pull)
 
 
 def _left_half_pixels(width: int, height: int, iterations: int, rays: int, seed: int) -> tuple[torch.Tensor, ...]:
