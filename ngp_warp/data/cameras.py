@@ -82,8 +82,9 @@ def undistort(xd: torch.Tensor, yd: torch.Tensor, distortion: torch.Tensor) -> t
 def pinhole_border_error(intrinsics: torch.Tensor, distortion: torch.Tensor, width: int, height: int,
                          samples: int = 64) -> float:
     """The most pixels by which the pinhole projection of a radial-tangential lens's ray misses
-    its pixel, over ``samples`` points on each side of the image border (where the lens bends
-    rays most): how far a pinhole test of what an image holds must grow the image.
+    its pixel, over ``samples`` points on each side of the image border: how far a pinhole test
+    of what an image holds must grow the image (for a lens that does not fold, the pixels inside
+    the image map inside the border's image).
 
     Args:
         intrinsics: [N, 4] float fx, fy, cx, cy. distortion: [N, 6] float k1, k2, k3, k4, p1, p2.

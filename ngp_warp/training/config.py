@@ -55,7 +55,8 @@ class TrainConfig:
     occupancy_decay: float = 0.95       # each grid refresh (every 16 steps) scales old estimates by this
     grid_seen_only: bool = False        # a refresh counts density only at points that a training ray
                                         # can sample (some training image holds them, past the near);
-                                        # pinhole and OpenCV lenses (fisheye: ignored)
+                                        # pinhole and OpenCV lenses (fisheye: ignored); it tests
+                                        # the starting poses (camera_refinement moves them)
     mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
                                         # field's graphs, "tf32" matmuls, or "fp32"
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
