@@ -60,6 +60,16 @@ def update(occs, cells, values, ema_decay: float, occ_threshold: float):
     return occs, thr, occs > thr
 
 
+def project(points, c2w, intrinsics):
+    """Points [..., 3] float64 seen by one OpenGL camera (c2w [3+, 4], intrinsics [4] fx fy cx
+    cy): (u, v, depth, distance), each [...]; u = fx·x/(−z) + cx, v = cy − fy·y/(−z)."""
+    fx, fy, cx, cy = intrinsics
+    d = points - c2w[:3, 3]
+    cam = d @ c2w[:3, :3]
+    depth = -cam[..., 2]
+    return fx * cam[..., 0] / depth + cx, cy - fy * cam[..., 1] / depth, depth, d.norm(dim=-1)
+
+
 def visible_cells(aabb, resolution, levels, c2w, intrinsics, width, height, near_plane=0.0,
                   contraction=None, inner_aabb=None):
     """[levels·R³] bool: some corner of the cell projects into some OpenGL camera's image (with a
@@ -71,12 +81,9 @@ def visible_cells(aabb, resolution, levels, c2w, intrinsics, width, height, near
         inner = torch.as_tensor(inner_aabb, dtype=f64)
         corners = uncontract(corners.reshape(-1, 3), contraction, inner).reshape(corners.shape)
     seen = torch.zeros(boxes.shape[0], dtype=torch.bool)
-    for m, (fx, fy, cx, cy) in zip(c2w.to(f64).cpu(), intrinsics.to(f64).cpu()):
-        cam = (corners - m[:3, 3]) @ m[:3, :3]
-        depth = -cam[..., 2]
+    for m, intr in zip(c2w.to(f64).cpu(), intrinsics.to(f64).cpu()):
+        u, v, depth, _ = project(corners, m, intr)
         ok = (depth > near_plane) & (depth > 0)
-        u = fx * cam[..., 0] / depth + cx
-        v = cy - fy * cam[..., 1] / depth
         ok &= (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
         seen |= ok.any(-1)
     return seen
@@ -87,12 +94,8 @@ def zero_unseen(points, values, c2w, intrinsics, width, height, near=0.0, margin
     margin pixels, in front of it and farther than near from it."""
     p = points.to(f64).cpu()
     seen = torch.zeros(p.shape[0], dtype=torch.bool)
-    for m, (fx, fy, cx, cy) in zip(c2w.to(f64).cpu(), intrinsics.to(f64).cpu()):
-        d = p - m[:3, 3]
-        cam = d @ m[:3, :3]
-        depth = -cam[:, 2]
-        ok = (depth > 0) & (d.norm(dim=-1) > near)
-        u = fx * cam[:, 0] / depth + cx
-        v = cy - fy * cam[:, 1] / depth
+    for m, intr in zip(c2w.to(f64).cpu(), intrinsics.to(f64).cpu()):
+        u, v, depth, distance = project(p, m, intr)
+        ok = (depth > 0) & (distance > near)
         seen |= ok & (u >= -margin) & (u <= width + margin) & (v >= -margin) & (v <= height + margin)
     return torch.where(seen, values.to(f64).cpu(), torch.zeros((), dtype=f64))
