@@ -110,7 +110,8 @@ def _fmt(q) -> str:
 
 def print_row(trainer, label: str, points: np.ndarray, t: np.ndarray, t_rel: np.ndarray, share: float) -> None:
     """One table row for the points [P, 3] (P ≥ 1) at distances ``t`` [P] from the view's camera,
-    ``t_rel`` [P] of its surface's."""
+    ``t_rel`` [P] as a share of a surface distance (the ray's own, or the view's median), on
+    ``share`` of the view's rays."""
     centres = trainer.scene.train.c2w[:, :, 3].cpu().numpy()
     near = np.linalg.norm(points[:, None] - centres[None], axis=-1).min(1)
     held = project(trainer, points)[3]
@@ -126,7 +127,7 @@ def print_row(trainer, label: str, points: np.ndarray, t: np.ndarray, t_rel: np.
 
 def print_holders(trainer, points: np.ndarray, top: int = 6) -> None:
     """The training images that hold most of the points [P, 3]: how many, where in the image
-    (median pixel), how far from their camera, and the median transmittance up to them."""
+    (median pixel), how far from their camera, and the transmittance up to them from it."""
     some = points[:TRANSMITTANCE_POINTS]
     u, v, distance, held = project(trainer, some)
     clear = training_transmittance(trainer, some, held)
