@@ -1,18 +1,15 @@
 """benchmarks/backdrop_coverage.py: the environment model's fit recovers what it can hold and
 not a sharp edge."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import torch
 
 from ngp_warp.ops.field import spherical_harmonics_deg4
 
-SPEC = importlib.util.spec_from_file_location(
-    "backdrop_coverage", Path(__file__).resolve().parents[1] / "benchmarks" / "backdrop_coverage.py")
-coverage = importlib.util.module_from_spec(SPEC)
-SPEC.loader.exec_module(coverage)
+from benchmark_scripts import load_benchmark
+
+coverage = load_benchmark("backdrop_coverage")
 
 
 def directions(n: int, seed: int = 0) -> torch.Tensor:

@@ -1,14 +1,10 @@
 """benchmarks/bench_captures.py's summary of several runs and its table."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-_spec = importlib.util.spec_from_file_location("bench_captures",
-                                               Path(__file__).parents[1] / "benchmarks" / "bench_captures.py")
-bench_captures = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bench_captures)
+from benchmark_scripts import load_benchmark
+
+bench_captures = load_benchmark("bench_captures")
 
 
 def run(whole: float, contraction: str) -> dict:

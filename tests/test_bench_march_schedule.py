@@ -1,18 +1,15 @@
 """benchmarks/bench_march_schedule.py's schedule parsing and its count of rays whose samples differ."""
 
 import argparse
-import importlib.util
-from pathlib import Path
 
 import pytest
 import torch
 
 from ngp_warp.ops.raymarch import MarchSchedule
 
-_spec = importlib.util.spec_from_file_location("bench_march_schedule",
-                                               Path(__file__).parents[1] / "benchmarks" / "bench_march_schedule.py")
-bench = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bench)
+from benchmark_scripts import load_benchmark
+
+bench = load_benchmark("bench_march_schedule")
 
 
 def test_schedules_parse_with_and_without_a_thread_bound():

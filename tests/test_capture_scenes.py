@@ -2,9 +2,7 @@
 they exercise: a NeRF-synthetic folder written as a COLMAP model or a transforms.json loads with
 the same cameras, a plain backdrop trains bounded, a backdrop at infinity contracted."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -20,10 +18,9 @@ from ngp_warp.training.scene_defaults import (choose_aabb_scale, choose_contract
 from ngp_warp.training.trainer import Trainer
 from ngp_warp.data.scene_unbounded import environment_colours, render_unbounded_rays, write_unbounded_scene
 
-_spec = importlib.util.spec_from_file_location("capture_scenes",
-                                               Path(__file__).parents[1] / "benchmarks" / "capture_scenes.py")
-capture_scenes = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(capture_scenes)
+from benchmark_scripts import load_benchmark
+
+capture_scenes = load_benchmark("capture_scenes")
 
 
 @pytest.fixture(scope="module")

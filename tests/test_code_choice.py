@@ -1,16 +1,12 @@
 """benchmarks/code_choice.py's candidate codes for a held-out view, on hand-made cameras."""
 
-import importlib.util
-from pathlib import Path
-
 import torch
 
 from ngp_warp.outputs.evaluate import psnr_whole_and_halves
 
-_spec = importlib.util.spec_from_file_location("code_choice",
-                                               Path(__file__).parents[1] / "benchmarks" / "code_choice.py")
-code_choice = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(code_choice)
+from benchmark_scripts import load_benchmark
+
+code_choice = load_benchmark("code_choice")
 
 
 def test_candidate_codes_follow_the_cameras_nearest_the_view():

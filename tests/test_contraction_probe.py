@@ -3,7 +3,6 @@ that starts again bounded (an object before a distant backdrop) or contracted wi
 holding the cameras, on the budget left."""
 
 import dataclasses
-import importlib.util
 import json
 from pathlib import Path
 
@@ -20,10 +19,9 @@ from ngp_warp.training.config import TrainConfig, cpu_sizes
 from ngp_warp.training.scene_defaults import focus_distance
 from ngp_warp.training.trainer import Trainer, TrainingDiverged
 
-_spec = importlib.util.spec_from_file_location("capture_scenes",
-                                               Path(__file__).parents[1] / "benchmarks" / "capture_scenes.py")
-capture_scenes = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(capture_scenes)
+from benchmark_scripts import load_benchmark
+
+capture_scenes = load_benchmark("capture_scenes")
 
 SMALL = {"target_samples": 1 << 10, "grid_resolution": 16}
 

@@ -197,14 +197,9 @@ def test_composite_is_a_torch_library_op_that_compiles_without_graph_breaks():
 
 
 def test_the_check_script_holds_on_every_case():
-    import importlib.util
-    from pathlib import Path
+    from benchmark_scripts import load_benchmark
 
-    spec = importlib.util.spec_from_file_location("check_embedding",
-                                                  Path(__file__).parents[1] / "benchmarks" / "check_embedding.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
-    results = script.run("cpu")
+    results = load_benchmark("check_embedding").run("cpu")
     assert len(results) == 7 and all(ok for _, ok, _ in results), results
 
 

@@ -1,26 +1,18 @@
 """benchmarks/floaters.py: which training images hold a point, and how clear their view of it is."""
 
 import contextlib
-import importlib.util
 import math
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
-BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
+from benchmark_scripts import load_benchmark
+
+floaters = load_benchmark("floaters")
+
 WIDTH, HEIGHT, FOCAL, NEAR = 40, 30, 20.0, 0.5
-
-
-@pytest.fixture
-def floaters(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))  # floaters.py imports its sibling fit_study
-    spec = importlib.util.spec_from_file_location("floaters", BENCHMARKS / "floaters.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 class WallAt:
@@ -51,7 +43,7 @@ def trainer_with(model) -> SimpleNamespace:
                            weights=SimpleNamespace(averaged_in_field=contextlib.nullcontext))
 
 
-def test_project_holds_points_in_the_image_past_the_near(floaters):
+def test_project_holds_points_in_the_image_past_the_near():
     trainer = trainer_with(WallAt(3.0, 0.5))
     points = np.array([[0.0, 0.0, -2.0],     # on camera 0's axis; 10 px left of camera 1's centre
                        [0.0, 0.0, -0.3],     # within the near of camera 0
@@ -63,7 +55,7 @@ def test_project_holds_points_in_the_image_past_the_near(floaters):
     assert held.tolist() == [[True, True], [False, False], [False, False], [False, False]]
 
 
-def test_training_transmittance_is_what_lies_in_front_of_the_point(floaters):
+def test_training_transmittance_is_what_lies_in_front_of_the_point():
     trainer = trainer_with(WallAt(3.0, 0.75))  # a wall 3 in front of every camera, 3/4 opaque
     points = np.array([[0.0, 0.0, -2.0], [0.5, 0.0, -5.0], [0.0, 0.0, -0.3]])
     held = floaters.project(trainer, points)[3]
@@ -73,7 +65,7 @@ def test_training_transmittance_is_what_lies_in_front_of_the_point(floaters):
     assert clear[1].tolist() == pytest.approx([0.25, 0.25])  # behind it
 
 
-def test_rows_and_holders_print_one_line_each(floaters, capsys):
+def test_rows_and_holders_print_one_line_each(capsys):
     trainer = trainer_with(WallAt(3.0, 0.75))
     points = np.array([[0.0, 0.0, -2.0], [0.5, 0.0, -5.0], [0.2, 0.1, -4.0]])
     floaters.print_row(trainer, "label", points, np.array([2.0, 5.0, 4.0]), np.array([0.4, 1.0, 0.8]), 0.25)

@@ -1,7 +1,6 @@
 """benchmarks/ingp_captures.py: the capture scenes written as instant-ngp's users train them
 (colmap2nerf's placement of the cameras, its box), and the table of instant-ngp's results."""
 
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -13,18 +12,10 @@ import torch
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
 
-_BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
+from benchmark_scripts import load_benchmark
 
-
-def _module(name):
-    spec = importlib.util.spec_from_file_location(name, _BENCHMARKS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-ingp_captures = _module("ingp_captures")
-capture_scenes = _module("capture_scenes")
+ingp_captures = load_benchmark("ingp_captures")
+capture_scenes = load_benchmark("capture_scenes")
 
 
 def ring_looking_at(target, n=12, radius=3.0, height=1.0, tilt=(0.2, -0.1, 0.97)):

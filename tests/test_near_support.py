@@ -1,8 +1,5 @@
 """benchmarks/near_support.py: a training image's PSNR by rows from the near and from a later start."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
 from ngp_warp.data.loading import load_scene
@@ -12,19 +9,12 @@ from ngp_warp.training.trainer import Trainer
 from ngp_warp.outputs.evaluate import composite_on
 from ngp_warp.outputs.metrics import psnr
 
-BENCHMARKS = Path(__file__).parents[1] / "benchmarks"
+from benchmark_scripts import load_benchmark
+
+near_support = load_benchmark("near_support")
 
 
-@pytest.fixture
-def near_support(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))  # near_support.py imports its sibling fit_study
-    spec = importlib.util.spec_from_file_location("near_support", BENCHMARKS / "near_support.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bands_cover_the_image_and_a_start_past_the_scene_leaves_the_background(near_support, tmp_path):
+def test_bands_cover_the_image_and_a_start_past_the_scene_leaves_the_background(tmp_path):
     scene = load_scene(write_demo_scene(tmp_path / "demo", width=24, height=20, n_train=6, n_test=1, supersample=1))
     config = cpu_sizes(TrainConfig(steps=30))
     config.target_samples, config.grid_resolution = 1 << 10, 16

@@ -1,22 +1,14 @@
 """benchmarks/probe_shares.py: one probe's shares at each mark, on a small sky capture."""
 
-import importlib.util
-from pathlib import Path
-
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.training.config import TrainConfig, cpu_sizes
 
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from benchmark_scripts import load_benchmark
 
 
 def test_probe_shares_reads_both_shares_at_each_mark(tmp_path, capsys):
-    probe_shares, capture_scenes = _load("probe_shares"), _load("capture_scenes")
+    probe_shares, capture_scenes = load_benchmark("probe_shares"), load_benchmark("capture_scenes")
     demo = write_demo_scene(tmp_path / "demo", width=24, height=24, n_train=10, n_test=2, supersample=1)
     sky = capture_scenes.write_capture(demo, tmp_path / "sky", "colmap-sky")
     config = cpu_sizes(TrainConfig())

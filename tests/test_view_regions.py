@@ -1,11 +1,9 @@
 """benchmarks/view_regions.py: photos scored as the evaluation scores them, and each region's
 PSNR of a run folder's renders and of another folder of renders."""
 
-import importlib.util
 import json
 import math
 import sys
-from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -14,10 +12,9 @@ import torch
 from ngp_warp.data.loading import downscale_image
 from ngp_warp.outputs.evaluate import composite_on
 
-_spec = importlib.util.spec_from_file_location("view_regions",
-                                               Path(__file__).parents[1] / "benchmarks" / "view_regions.py")
-view_regions = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(view_regions)
+from benchmark_scripts import load_benchmark
+
+view_regions = load_benchmark("view_regions")
 
 
 def test_photo_as_scored_is_the_evaluations_ground_truth(tmp_path):
