@@ -52,9 +52,9 @@ def main() -> None:
     ap.add_argument("--bands", type=int, default=12)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = ap.parse_args()
-    if args.bands < 1:
-        ap.error(f"--bands must be at least 1, got {args.bands}")
     trainer = trainer_or_usage_error(ap, args.run, args.device)
+    if not 1 <= args.bands <= trainer.train_split.height:
+        ap.error(f"--bands must be 1 to the images' {trainer.train_split.height} rows, got {args.bands}")
     names = [Path(n).name for n in trainer.train_split.names]
     start = 2.0 * trainer.model.march.near if args.start is None else args.start
     if not trainer.model.march.near < start < trainer.model.march.far:

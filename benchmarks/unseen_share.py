@@ -6,9 +6,9 @@ that the rule zeroes.
 
 For each scene of ``bench_captures.py`` (written into ``--work`` once), builds the trainer the
 command line builds with ``grid_seen_only=true`` (a probed scene both ways: contracted with the
-box holding the cameras, and bounded), draws a jittered point in
-every cell ``--rounds`` times, as the grid's warm-up refreshes do, and passes density 1 through
-the rule's kernel. A scene where no point is zeroed trains exactly as without the rule.
+box holding the cameras, and bounded), draws a jittered point in every cell ``--rounds`` times,
+as the grid's warm-up refreshes do, and passes density 1 through the rule's kernel. A scene
+where no point is zeroed trains exactly as without the rule.
 """
 
 from __future__ import annotations
