@@ -37,6 +37,15 @@ from ngp_warp.data.cameras import generate_rays
 TRANSMITTANCE_POINTS = 1024  # floater points whose training transmittance is measured
 
 
+def ray_samples(trainer, rays_o: torch.Tensor, rays_d: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The samples of rays [R, 3] (origins, unit directions) through the trained field with its
+    weight average: each sample's ray [S] int64, weight [S] float32 and midpoint distance [S]."""
+    with torch.no_grad(), trainer.weights.averaged_in_field(), trainer.model.precision():
+        out = trainer.model.render(rays_o, rays_d, trainer.field, background=1.0, return_samples=True)
+    n = int(out["ray_offsets"][-1])
+    return out["ray_indices"][:n], out["weights"][:n].float(), (0.5 * (out["t_starts"] + out["t_ends"]))[:n]
+
+
 def front_weights(trainer, camera: dict, n_rays: int, seed: int = 0) -> dict:
     """Per ray (numpy): ``front`` weight, its weighted mean distance ``t_front``, ``t_surface``,
     and the front points and surface points [R, 3] in world space."""
@@ -47,11 +56,7 @@ def front_weights(trainer, camera: dict, n_rays: int, seed: int = 0) -> dict:
     rays_o, rays_d = generate_rays(camera["c2w"][None].expand(n_rays, 3, 4).to(dev),
                                    camera["intrinsics"][None].expand(n_rays, 4).to(dev), dist, px, py,
                                    fisheye=camera["fisheye"])
-    with torch.no_grad(), trainer.weights.averaged_in_field(), trainer.model.precision():
-        out = trainer.model.render(rays_o, rays_d, trainer.field, background=1.0, return_samples=True)
-    n = int(out["ray_offsets"][-1])
-    ray, weight = out["ray_indices"][:n], out["weights"][:n].float()
-    t = (0.5 * (out["t_starts"] + out["t_ends"]))[:n]
+    ray, weight, t = ray_samples(trainer, rays_o, rays_d)
     best = torch.full((n_rays,), -1.0, device=dev).scatter_reduce(0, ray, weight, "amax")
     is_best = weight >= best[ray]
     t_surface = torch.zeros(n_rays, device=dev).scatter_reduce(0, ray[is_best], t[is_best], "amax", include_self=False)
@@ -93,12 +98,7 @@ def training_transmittance(trainer, points: np.ndarray, held: np.ndarray) -> np.
     origins = trainer.scene.train.c2w[torch.from_numpy(pair_camera), :, 3].float().to(dev)
     offset = torch.from_numpy(points[pair_point]).float().to(dev) - origins
     distance = offset.norm(dim=-1)
-    with torch.no_grad(), trainer.weights.averaged_in_field(), trainer.model.precision():
-        out = trainer.model.render(origins, offset / distance[:, None], trainer.field, background=1.0,
-                                   return_samples=True)
-    n = int(out["ray_offsets"][-1])
-    ray, weight = out["ray_indices"][:n], out["weights"][:n].float()
-    t = (0.5 * (out["t_starts"] + out["t_ends"]))[:n]
+    ray, weight, t = ray_samples(trainer, origins, offset / distance[:, None])
     before = torch.zeros(len(pair_point), device=dev).index_add_(0, ray, weight * (t < distance[ray]))
     clear[pair_point, pair_camera] = (1.0 - before).clamp(0, 1).cpu().numpy()
     return clear
