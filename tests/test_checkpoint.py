@@ -65,10 +65,12 @@ def test_old_format_checkpoint_loads_into_the_same_trainer_state(tiny_scene, tmp
     torch.save(old, tmp_path / "old.pt")
     loaded, record = load_trainer(tmp_path / "old.pt", device="cpu")
     assert record == old["scene"]
-    assert_same_state(loaded.state_dict(), trainer.state_dict())
+    mine, theirs = loaded.state_dict(), trainer.state_dict()
+    assert mine.pop("curve").shape == (0, 6) and theirs.pop("curve").shape == (3, 6)  # steps 1, 10, 12; an old file has none
+    assert_same_state(mine, theirs)
     assert loaded.config == trainer.config
-    save_checkpoint(trainer, tmp_path / "new.pt", tiny_scene, 1)  # today's files have the same parts
-    assert torch.load(tmp_path / "new.pt", weights_only=False).keys() == old.keys()
+    save_checkpoint(trainer, tmp_path / "new.pt", tiny_scene, 1)  # today's files have the same parts and the curve
+    assert torch.load(tmp_path / "new.pt", weights_only=False).keys() == {*old.keys(), "curve"}
     split = trainer.scene.test
     a, b = (t.render_image(split.c2w[1], split.intrinsics[1], split.width, split.height) for t in (trainer, loaded))
     assert a["opacity"].std() > 0
@@ -108,9 +110,10 @@ def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam)
             saved = theirs.state_dict()["state"][key]
             assert all(torch.equal(v, saved[k]) if torch.is_tensor(v) else v == saved[k] for k, v in state.items())
 
+    assert loaded.curve == trainer.curve and [row[0] for row in trainer.curve] == [1, 10, 20, 30, 40]
     loaded.config.steps = 5
     loaded.train(show_progress=False)
-    assert loaded.step_count == 45
+    assert loaded.step_count == 45 and [row[0] for row in loaded.curve] == [1, 10, 20, 30, 40, 45]
 
 
 def test_checkpoint_written_behind_holds_the_weights_of_the_call(tiny_scene, tmp_path):

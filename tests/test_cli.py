@@ -119,6 +119,15 @@ def test_resume_keeps_the_recorded_downscale(scene, tmp_path):
     state = read_checkpoint(out / "checkpoint.pt")
     assert state["scene"]["downscale"] == 2 and state["step"] == 5
     assert state["scene"]["path"] == str(scene.resolve())
+    # the curve continues across the resume: readouts at step 1 and at each run's last step
+    lines = (out / "training_curve.csv").read_text().splitlines()
+    assert lines[0] == "step,seconds,loss,psnr,rays,samples"
+    rows = [[float(x) for x in line.split(",")] for line in lines[1:]]
+    assert [int(r[0]) for r in rows] == [1, 3, 5]
+    assert all(a[1] <= b[1] for a, b in zip(rows, rows[1:])) and rows[-1][1] == pytest.approx(state["train_seconds"], abs=0.5)
+    assert all(r[2] > 0 and 0 < r[3] < 100 and r[4] > 0 and r[5] > 0 for r in rows)
+    torch.testing.assert_close(torch.tensor([r[:4] for r in rows], dtype=torch.float64), state["curve"][:, :4],
+                               rtol=1e-4, atol=2e-3)
 
 
 def test_bad_numbers_and_video_names_are_refused(scene, tmp_path, capsys):

@@ -213,4 +213,6 @@ def test_a_sigterm_during_cli_training_saves_and_exits_143(tiny_scene, tmp_path,
     assert "terminated (SIGTERM) at step" in err and "Traceback" not in err
     state = torch.load(out / "checkpoint.pt", weights_only=False)
     assert state["step"] > 0 and np.isfinite(state["train_seconds"])
-    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt", "training_curve.csv"]
+    steps = [int(line.split(",")[0]) for line in (out / "training_curve.csv").read_text().splitlines()[1:]]
+    assert steps == state["curve"][:, 0].int().tolist() and 0 < len(steps) and steps[-1] <= state["step"]

@@ -12,8 +12,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-CHECKPOINT = "checkpoint.pt"
-
+from ngp_warp.training.run_folder import CHECKPOINT, TRAINING_CURVE
 
 ORBIT_FPS = 20.0  # the training run's orbit video
 MAX_DOWNSCALE = 1024  # --downscale: beyond it no image keeps a pixel
@@ -205,7 +204,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     from ngp_warp.training.checkpoint import load_trainer, save_checkpoint
     from ngp_warp.outputs.camera_path import around_cameras
     from ngp_warp.outputs.video_out import render_trainer_video
-    from ngp_warp.outputs.evaluate import evaluate, write_metrics
+    from ngp_warp.outputs.evaluate import evaluate, write_metrics, write_training_curve
     from ngp_warp.wall_clock import WallClock
     from ngp_warp.training.refined_transforms import write_refined_transforms
 
@@ -242,7 +241,9 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
               file=sys.stderr)
 
     def save(writer=None):  # an overwritten run's outputs go just before the first (good) write
-        return save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim, writer=writer)
+        written = save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim, writer=writer)
+        write_training_curve(out, trainer.curve)  # beside each checkpoint, so that it survives an interruption
+        return written
 
     if resume:
         _check_video(args, scene)
@@ -307,7 +308,8 @@ def print_metrics(metrics: dict, out: Path) -> None:
         print(f"  (right halves, each view's {fitted} fitted on its left half; whole images with the nearest "
               f"training view's code: PSNR {metrics['psnr_nearest_code']:.2f} dB, the mean code: "
               f"{metrics['psnr_mean_code']:.2f} dB)")
-    print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}")
+    print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}, "
+          f"{out / TRAINING_CURVE}")
 
 
 def positive(kind, low=None, high=None):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -22,6 +22,7 @@ from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.outputs.lpips import lpips_scorer, lpips_summary
 from ngp_warp.data.loading import Split
 from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr_tensor, ssim_tensor
+from ngp_warp.training.run_folder import TRAINING_CURVE
 from ngp_warp.training.trainer import Trainer
 
 
@@ -255,6 +256,21 @@ def write_metrics(out_dir: Path, metrics: dict) -> dict:
     metrics = finite_or_null(metrics)
     atomic_write_text(Path(out_dir) / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False))
     return metrics
+
+
+CURVE_COLUMNS = ("step", "seconds", "loss", "psnr", "rays", "samples")
+
+
+def write_training_curve(out_dir: Path, rows: Sequence[tuple]) -> Path:
+    """Write the trainer's readouts (:attr:`~ngp_warp.training.trainer.Trainer.curve`: step,
+    training seconds, loss, training-batch PSNR, rays and samples of that step) to
+    ``out_dir/training_curve.csv``, one row each; return its path."""
+    lines = [",".join(CURVE_COLUMNS)]
+    lines += [f"{step},{seconds:.3f},{loss:.6g},{psnr:.4f},{rays},{samples}"
+              for step, seconds, loss, psnr, rays, samples in rows]
+    path = Path(out_dir) / TRAINING_CURVE
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path
 
 
 def finite_or_null(metrics: dict) -> dict:

@@ -1,6 +1,6 @@
 """A training run's output folder: one run's files only, whatever interrupts it.
 
-A run writes ``checkpoint.pt``, ``metrics.json``, ``renders/``, ``depth/``, the orbit video and
+A run writes ``checkpoint.pt``, ``training_curve.csv``, ``metrics.json``, ``renders/``, ``depth/``, the orbit video and
 ``normalisation.json`` into its folder (:data:`RUN_OUTPUTS`). A new run into a folder that holds
 another run's outputs is refused unless it resumes that run or is told to overwrite it; an
 overwriting run deletes the old outputs just before its own first write (:meth:`RunFolder.claim`),
@@ -20,7 +20,9 @@ from pathlib import Path
 from ngp_warp.atomic import remove_stale_partials
 
 CHECKPOINT = "checkpoint.pt"
-RUN_OUTPUTS = (CHECKPOINT, "metrics.json", "renders", "depth", "orbit.mp4", "orbit.gif", "normalisation.json")
+TRAINING_CURVE = "training_curve.csv"
+RUN_OUTPUTS = (CHECKPOINT, TRAINING_CURVE, "metrics.json", "renders", "depth", "orbit.mp4", "orbit.gif",
+               "normalisation.json")
 OUTPUT_FOLDERS = ("renders", "depth")
 SIGTERM_EXIT = 128 + signal.SIGTERM  # 143, as a shell reports a process ended by SIGTERM
 

@@ -80,6 +80,8 @@ class Trainer:
         self.step_count = 0
         self.train_seconds = 0.0
         self._readout = HostCopy(2, self.device)  # a readout's loss and mse, on their way to the host
+        # one row per readout: step, training seconds, loss, training PSNR, rays, samples
+        self.curve: list[tuple[int, float, float, float, int, int]] = []
         # data-parallel training (ngp_warp.training.distributed.make_data_parallel) sets these hooks:
         self.ray_stream = 0  # this rank's ray seed stream
         self.gradient_reduction: Callable[[], None] | None = None  # after every backward, on every rank
@@ -228,7 +230,8 @@ class Trainer:
               checkpoint_every: float = 300.0, stop: tuple[int | None, float | None] = (None, None),
               until: Callable[[], bool] | None = None, desc: str = "train") -> None:
         """Train until the step or time budget of the config is spent, with a progress bar on
-        stderr named ``desc`` (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps).
+        stderr named ``desc`` (loss, PSNR, rays and samples read every ``READOUT_EVERY`` steps,
+        each readout a row of :attr:`curve`).
 
         The loss is copied to the host every ``READOUT_EVERY`` steps and read at the next
         readout, when the copy has landed (no wait for the GPU), and after the last step: a
@@ -276,7 +279,9 @@ class Trainer:
                     if until is not None and until():
                         break
             if self.step_count > start_step:  # the last step's loss, read once the GPU is done
-                self._start_readout(stats)
+                if not (self._readout.pending and self._readout_of["step"] == self.step_count):
+                    self._show_readout(bar if show_progress else None)  # an earlier step's, still pending
+                    self._start_readout(stats)
                 self._show_readout(bar if show_progress else None)
             bar.update(done() - bar.n)
         self.flush()
@@ -284,7 +289,8 @@ class Trainer:
     def _start_readout(self, stats: dict) -> None:
         """Queue the copy of a step's loss and mse (:meth:`step`'s ``stats``) to the host."""
         self._readout.start(stats["loss"], stats["mse"])
-        self._readout_of = {"step": self.step_count, "rays": stats["rays"], "samples": stats["samples"]}
+        self._readout_of = {"step": self.step_count, "seconds": self.train_seconds, "rays": stats["rays"],
+                            "samples": stats["samples"]}
 
     def _show_readout(self, bar) -> None:
         """Read the queued readout, if any: check its loss and show it on ``bar`` (None: check only).
@@ -297,8 +303,9 @@ class Trainer:
         (loss, mse), of = self._readout.read(), self._readout_of
         if not math.isfinite(loss):
             raise TrainingDiverged(f"training diverged: the loss is {loss} at step {of['step']} (try a lower lr)")
+        psnr = -10.0 * math.log10(max(mse, 1e-10))
+        self.curve.append((of["step"], of["seconds"], loss, psnr, of["rays"], of["samples"]))
         if bar is not None:
-            psnr = -10.0 * math.log10(max(mse, 1e-10))
             bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}", rays=of["rays"], samples=of["samples"],
                             refresh=False)
 
@@ -342,14 +349,16 @@ class Trainer:
     def state_dict(self) -> dict:
         """Everything that resumes training: ``field``, ``grid``, the optimizer state
         (:meth:`FieldOptimizer.state_dict`), the ray count (:meth:`RayCount.state_dict`),
-        ``step`` and ``train_seconds``: the keys of format-v1 checkpoints. The settings are the
-        constructor's. Applies the last step's update first."""
+        ``step`` and ``train_seconds``: the keys of format-v1 checkpoints; ``curve``, :attr:`curve`
+        as a [N, 6] float64 tensor. The settings are the constructor's. Applies the last step's
+        update first."""
         self.flush()
         weights = self.weights.state_dict()
         cameras = {} if self.cameras is None else {"cameras": self.cameras.state_dict(),
                                                    "camera_adam": self.camera_adam.state_dict()}
         return {"field": self.field.state_dict(), "grid": self.grid.state_dict(), **weights, **cameras,
-                **self.rays.state_dict(), "step": self.step_count, "train_seconds": self.train_seconds}
+                **self.rays.state_dict(), "step": self.step_count, "train_seconds": self.train_seconds,
+                "curve": torch.tensor(self.curve, dtype=torch.float64).reshape(-1, 6)}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict` into a trainer built with the same settings (other keys
@@ -363,6 +372,8 @@ class Trainer:
             self.camera_adam.load_state_dict(state["camera_adam"])
         self.step_count = state["step"]
         self.train_seconds = state["train_seconds"]
+        self.curve = [(int(r[0]), r[1], r[2], r[3], int(r[4]), int(r[5])) for r in state["curve"].tolist()] \
+            if "curve" in state else []
 
 
 class TrainingDiverged(RuntimeError):
