@@ -288,9 +288,8 @@ def render_rays(
             count, before the host waits for it (device work queued there hides the wait).
         ray_images: [N] int64 training image of each ray (per-image appearance codes), or
             None; then ``field_fn(positions, directions, images [S] int64)`` (padding: image 0).
-        validate: check finite origins and unit directions (read with the march's count: no
-            extra sync) and σ ≥ 0 from ``field_fn`` and ``sigma_fn`` (a host sync each), else
-            ValueError. Loops whose rays and field are known good pass False.
+        validate: check finite unit rays (read with the march's count: no extra sync) and σ ≥ 0
+            from ``field_fn`` and ``sigma_fn`` (a sync each), else ValueError; False skips it.
         near_gradient_distance: > 0: each sample's σ and colour gradients are scaled by
             :math:`\\min(1, (t / \\text{this})^2)` (:func:`_near_camera_scale`).
         alpha_thre: with ``sigma_fn``, samples whose α = 1 − exp(−σ δ) is below this are left
