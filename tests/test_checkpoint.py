@@ -66,7 +66,8 @@ def test_old_format_checkpoint_loads_into_the_same_trainer_state(tiny_scene, tmp
     loaded, record = load_trainer(tmp_path / "old.pt", device="cpu")
     assert record == old["scene"]
     mine, theirs = loaded.state_dict(), trainer.state_dict()
-    assert mine.pop("curve").shape == (0, 6) and theirs.pop("curve").shape == (3, 6)  # steps 1, 10, 12; an old file has none
+    # an old file has no curve; this run's is steps 1, 10 and 12
+    assert mine.pop("curve").shape == (0, 6) and theirs.pop("curve").shape == (3, 6)
     assert_same_state(mine, theirs)
     assert loaded.config == trainer.config
     save_checkpoint(trainer, tmp_path / "new.pt", tiny_scene, 1)  # today's files have the same parts and the curve

@@ -124,7 +124,8 @@ def test_resume_keeps_the_recorded_downscale(scene, tmp_path):
     assert lines[0] == "step,seconds,loss,psnr,rays,samples"
     rows = [[float(x) for x in line.split(",")] for line in lines[1:]]
     assert [int(r[0]) for r in rows] == [1, 3, 5]
-    assert all(a[1] <= b[1] for a, b in zip(rows, rows[1:])) and rows[-1][1] == pytest.approx(state["train_seconds"], abs=0.5)
+    assert all(a[1] <= b[1] for a, b in zip(rows, rows[1:]))
+    assert rows[-1][1] == pytest.approx(state["train_seconds"], abs=0.5)
     assert all(r[2] > 0 and 0 < r[3] < 100 and r[4] > 0 and r[5] > 0 for r in rows)
     torch.testing.assert_close(torch.tensor([r[:4] for r in rows], dtype=torch.float64), state["curve"][:, :4],
                                rtol=1e-4, atol=2e-3)

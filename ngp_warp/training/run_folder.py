@@ -1,12 +1,13 @@
 """A training run's output folder: one run's files only, whatever interrupts it.
 
-A run writes ``checkpoint.pt``, ``training_curve.csv``, ``metrics.json``, ``renders/``, ``depth/``, the orbit video and
-``normalisation.json`` into its folder (:data:`RUN_OUTPUTS`). A new run into a folder that holds
-another run's outputs is refused unless it resumes that run or is told to overwrite it; an
-overwriting run deletes the old outputs just before its own first write (:meth:`RunFolder.claim`),
-so that until then the old run stays whole, and afterwards no file of it is left beside the new
-one. SIGTERM (sent by ``timeout``, systemd and Slurm) interrupts the run as Ctrl-C does
-(:func:`sigterm_as_interrupt`), so the same handler saves its checkpoint.
+A run writes ``checkpoint.pt``, ``training_curve.csv``, ``metrics.json``, ``renders/``,
+``depth/``, the orbit video and ``normalisation.json`` into its folder (:data:`RUN_OUTPUTS`).
+A new run into a folder that holds another run's outputs is refused unless it resumes that run
+or is told to overwrite it; an overwriting run deletes the old outputs just before its own first
+write (:meth:`RunFolder.claim`), so that until then the old run stays whole, and afterwards no
+file of it is left beside the new one. SIGTERM (sent by ``timeout``, systemd and Slurm)
+interrupts the run as Ctrl-C does (:func:`sigterm_as_interrupt`), so the same handler saves its
+checkpoint.
 """
 
 from __future__ import annotations
