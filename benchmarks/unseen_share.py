@@ -22,9 +22,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 import bench_captures  # noqa: E402
-from ngp_warp import _wp  # noqa: E402
 from ngp_warp.data.loading import load_scene  # noqa: E402
-from ngp_warp.kernels import occupancy as K  # noqa: E402
 from ngp_warp.ops.contraction import uncontract  # noqa: E402
 from ngp_warp.training.config import TrainConfig  # noqa: E402
 from ngp_warp.training.contraction_probe import _bounded, _probes  # noqa: E402
@@ -47,8 +45,7 @@ def zeroed_share(trainer: Trainer, rounds: int = 4) -> tuple[float, int, int]:
             if grid.contraction is not None:
                 points = uncontract(points, grid.contraction, grid.inner_aabb, check_box=False)
             density = torch.ones(m, device=points.device)
-            _wp.launch(K.zero_unseen, m, [points, grid._seen_c2w, grid._seen_intrinsics, grid._seen_c2w.shape[0],
-                                          *grid._seen_frame, density], _wp.device_of(density))
+            grid._zero_unseen(points, density)
             counted = visible[cells.long()]
             gone = counted & (density == 0)
             zeroed, total = zeroed + int(gone.sum()), total + int(counted.sum())

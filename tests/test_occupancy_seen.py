@@ -138,11 +138,9 @@ def test_no_point_a_training_ray_samples_is_zeroed(tmp_path, lens):
     """Every point of every training pixel's sub-rays, from the near to the grid's edge, is kept
     (float64 twin and kernel), and a distorted lens grows the image by 1 px plus its pinhole error."""
     from data_fixtures import colmap_scene
-    from ngp_warp import _wp
     from ngp_warp.data.cameras import generate_rays
     from ngp_warp.data.loading import load_scene
     from ngp_warp.data.scene import write_demo_scene
-    from ngp_warp.kernels import occupancy as K
     from ngp_warp.training.trainer import Trainer
     from test_train import tiny_config
 
@@ -175,6 +173,5 @@ def test_no_point_a_training_ray_samples_is_zeroed(tmp_path, lens):
     assert points.shape[0] > 10_000
     assert (occupancy_ref.zero_unseen(points, ones, split.c2w, split.intrinsics, *grid._seen_frame) == 1).all()
     values = ones.float()
-    _wp.launch(K.zero_unseen, points.shape[0], [points.float().contiguous(), grid._seen_c2w, grid._seen_intrinsics,
-                                                 grid._seen_c2w.shape[0], *grid._seen_frame, values], "cpu")
+    grid._zero_unseen(points.float().contiguous(), values)
     assert (values == 1).all()

@@ -235,8 +235,7 @@ class OccupancyGrid(nn.Module):
                 raise ValueError(f"density_fn must return [{m}] or [{m}, 1] densities, got {shape}")
             values = values.detach().reshape(m).to(torch.float32).contiguous()
             if self._seen_frame is not None:
-                _wp.launch(K.zero_unseen, m, [points, self._seen_c2w, self._seen_intrinsics,
-                                              self._seen_c2w.shape[0], *self._seen_frame, values], device)
+                self._zero_unseen(points, values)
             # Scatter-max into arbitrary cells: one CPU thread (align=m), as CPU atomics are not atomic.
             _wp.launch(K.splat_max, m, [cells, values, self._splat], device, align=m)
         if self.merge_samples is not None:
@@ -305,6 +304,13 @@ class OccupancyGrid(nn.Module):
             _wp.device_of(self.occs),
         )
         return cells, points
+
+    def _zero_unseen(self, points: torch.Tensor, values: torch.Tensor) -> None:
+        """Set to 0, in place, the ``values`` [m] float32 of the world ``points`` [m, 3] float32
+        that none of :meth:`count_seen_only`'s cameras sees."""
+        _wp.launch(K.zero_unseen, points.shape[0], [points, self._seen_c2w, self._seen_intrinsics,
+                                                    self._seen_c2w.shape[0], *self._seen_frame, values],
+                   _wp.device_of(values))
 
     def _pack(self) -> None:
         _wp.launch(
