@@ -102,3 +102,26 @@ def load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[t
     finally:
         pool.shutdown(wait=True, cancel_futures=True)  # after an error, skip the images not yet read
     return out, sizes
+
+
+def load_masks(frames: list[Frame], sizes: list[tuple[int, int]], downscale: int) -> np.ndarray | None:
+    """The frames' training masks (nerfstudio's ``mask_path``: train on the pixels whose first
+    channel is nonzero; instant-ngp's dynamic masks, ``Frame.mask_marks_out``: on the black
+    ones) -> [N, h, w] bool, a pixel of a downscaled image kept only where its whole block is;
+    a frame without a mask keeps every pixel. None when no frame has one. ``sizes`` are the
+    images' original (W, H), which each mask must match."""
+    if all(f.mask is None for f in frames):
+        return None
+    w, h = sizes[0][0] // downscale, sizes[0][1] // downscale
+    out = np.ones((len(frames), h, w), dtype=bool)
+    for k, frame in enumerate(frames):
+        if frame.mask is None:
+            continue
+        a = read_image(frame.mask)
+        if (a.shape[1], a.shape[0]) != sizes[k]:
+            raise DataError(f"{frame.mask}: mask is {a.shape[1]}x{a.shape[0]} but its image "
+                            f"({frame.image.name}) is {sizes[k][0]}x{sizes[k][1]}")
+        a = a[: h * downscale, : w * downscale]
+        keep = (a[..., :3] == 0).all(axis=2) if frame.mask_marks_out else a[..., 0] > 0
+        out[k] = keep.reshape(h, downscale, w, downscale).all(axis=(1, 3))
+    return out

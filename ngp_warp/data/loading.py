@@ -28,7 +28,7 @@ from ngp_warp.atomic import atomic_write_text
 from ngp_warp.data.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, generate_rays
 from ngp_warp.data.colmap import colmap_to_transforms, read_colmap_model
 from ngp_warp.data.data_error import DataError, short
-from ngp_warp.data.images import downscale_image, load_images
+from ngp_warp.data.images import downscale_image, load_images, load_masks
 from ngp_warp.data.transforms_json import (NGP_SCENE_KEYS, Frame, check_pose_set, contraction_key, declared_size, frame_camera, log,
                                       read_frames, read_json, world_box, world_from_scene)
 
@@ -53,6 +53,7 @@ class Split:
         names: N image file paths.
         width, height: W and H.
         fisheye: the cameras are OpenCV fisheye (equidistant) lenses.
+        masks: [N, H, W] bool, the pixels to train on (the frames' ``mask_path``), or None: all.
         has_distortion: any distortion coefficient is non-zero, or fisheye (computed; pass
             ``distortion`` to :func:`generate_rays` only then).
     """
@@ -65,6 +66,7 @@ class Split:
     width: int
     height: int
     fisheye: bool = False
+    masks: torch.Tensor | None = None
     has_distortion: bool = field(init=False)
 
     def __post_init__(self):
@@ -75,6 +77,8 @@ class Split:
             "intrinsics": (self.intrinsics, (n, 4), torch.float32),
             "distortion": (self.distortion, (n, 6), torch.float32),
         }
+        if self.masks is not None:
+            expect["masks"] = (self.masks, (n, self.height, self.width), torch.bool)
         for name, (t, shape, dtype) in expect.items():
             if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
                 raise ValueError(f"Split.{name} has shape {list(t.shape)}, expected {list(shape)}")
@@ -101,7 +105,8 @@ class Split:
 
     def to(self, device) -> "Split":
         return Split(self.images.to(device), self.c2w.to(device), self.intrinsics.to(device),
-                     self.distortion.to(device), list(self.names), self.width, self.height, self.fisheye)
+                     self.distortion.to(device), list(self.names), self.width, self.height, self.fisheye,
+                     None if self.masks is None else self.masks.to(device))
 
     def rays(self, image_index: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through pixels (px[b], py[b]) of images image_index[b] (all [B] int, on the
@@ -197,7 +202,8 @@ def _warn_rescaled(frames: list[Frame], sizes: list[tuple[int, int]]) -> None:
                     f"focal length and centre scaled to the image ({len(odd)} of {len(frames)} frames)")
 
 
-def _split(frames: list[Frame], images: np.ndarray, sizes: list[tuple[int, int]], downscale: int) -> Split:
+def _split(frames: list[Frame], images: np.ndarray, sizes: list[tuple[int, int]], downscale: int,
+           masks: np.ndarray | None = None) -> Split:
     intr, dist, fisheye = zip(*(frame_camera(f, w, h) for f, (w, h) in zip(frames, sizes)))
     _warn_rescaled(frames, sizes)
     if len(set(fisheye)) > 1:
@@ -213,6 +219,7 @@ def _split(frames: list[Frame], images: np.ndarray, sizes: list[tuple[int, int]]
         width=images.shape[2],
         height=images.shape[1],
         fisheye=fisheye[0],
+        masks=None if masks is None else torch.from_numpy(masks),
     )
 
 
@@ -298,7 +305,7 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
         aabb, levels, scale = [-b, -b, -b, b, b, b], 1, 0.5 / b
         cascade_box = aabb
     return Scene(
-        train=_split(train, images[:n], sizes[:n], downscale),
+        train=_split(train, images[:n], sizes[:n], downscale, load_masks(train, sizes[:n], downscale)),
         test=_split(test, images[n:], sizes[n:], downscale),
         test_is_heldout=len(sources) == 1,
         aabb=torch.tensor(aabb, dtype=torch.float32),

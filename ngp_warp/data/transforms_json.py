@@ -45,12 +45,17 @@ log = logging.getLogger("ngp_warp.data.loading")
 @dataclass
 class Frame:
     """One frame: ``c2w`` [3, 4] float64 OpenGL camera-to-world; ``camera`` the camera keys of
-    the file's top level, then the frame's (which override them)."""
+    the file's top level, then the frame's (which override them); ``mask`` nerfstudio's
+    ``mask_path`` (train on its nonzero pixels) or, without one, instant-ngp's
+    ``dynamic_mask_<image stem>.png`` beside the image (``mask_marks_out``: train on its
+    black pixels), None without either."""
 
     where: str  # "<file> frame <i>", for messages
     image: Path
     c2w: np.ndarray
     camera: list[dict]
+    mask: Path | None = None
+    mask_marks_out: bool = False
 
 
 def read_json(path: Path) -> dict:
@@ -164,8 +169,16 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
         c2w = _matrix(frame["transform_matrix"], where)[:3]
         _check_rigid(c2w, where)
         image = image_path(base, frame["file_path"], where)
+        mask = frame.get("mask_path")
+        if mask is not None and (not isinstance(mask, str) or not mask):
+            raise DataError(f"{where}: mask_path must be a non-empty string, got {short(mask)}")
+        mask = None if mask is None else image_path(base, mask, where)
+        if mask is not None and not mask.is_file():
+            raise DataError(f"{where}: mask_path {mask}: no such file")
+        dynamic = image.with_name(f"dynamic_mask_{image.stem}.png")
+        marks_out = mask is None and dynamic.is_file()
         if image.is_file():
-            out.append(Frame(where, image, c2w, [top, _camera_keys(frame)]))
+            out.append(Frame(where, image, c2w, [top, _camera_keys(frame)], dynamic if marks_out else mask, marks_out))
         else:
             missing.append(image)
     if not out:

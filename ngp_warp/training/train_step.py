@@ -192,3 +192,20 @@ class HostCopy:
             self._landed.synchronize()
         self.pending = False
         return self._host.tolist()
+
+
+def pixels_kept(masks: torch.Tensor | None, pixels: torch.Tensor, sub: int) -> torch.Tensor | None:
+    """[p k] bool: whether each ray's pixel is one to train on, by the training masks [N, H, W]
+    bool (None: all, returns None), for ``pixels`` [p, 3] int32 (image, px, py) of k = sub²
+    rays each (a gather on the device: no sync)."""
+    if masks is None:
+        return None
+    image, px, py = pixels.long().unbind(1)
+    return masks[image, py, px].repeat_interleave(sub * sub)
+
+
+def rays_kept(ray_mask: torch.Tensor | None, kept: torch.Tensor | None) -> torch.Tensor | None:
+    """The rays a loss counts: both masks [N] bool where given (None: all)."""
+    if ray_mask is None or kept is None:
+        return kept if ray_mask is None else ray_mask
+    return ray_mask & kept

@@ -32,7 +32,8 @@ from ngp_warp.ops.occupancy import OccupancyGrid
 from ngp_warp.ops.ray_loss import ray_loss
 from ngp_warp.outputs.renderer import render_view
 from ngp_warp.training.scene_defaults import edge_pixels, with_backdrop_alpha
-from ngp_warp.training.train_step import HostCopy, RayCount, StepPhases, TrainingField, backward
+from ngp_warp.training.train_step import (HostCopy, RayCount, StepPhases, TrainingField, backward, pixels_kept,
+                                         rays_kept)
 
 READOUT_EVERY = 10  # steps between progress readouts (each copies the loss to the host, read at the next)
 
@@ -71,6 +72,7 @@ class Trainer:
         if self.field.environment is not None:
             _start_environment(self.field.environment, self.train_split.images)
         self.batch_images: torch.Tensor | None = None  # [p k] int64 image per ray of the last batch
+        self.batch_kept: torch.Tensor | None = None  # [p k] bool: the ray's pixel is one to train on
         self.target_samples = default_target_samples(cfg, self.device.type)
         self.rays = RayCount(cfg.initial_rays, cfg.max_rays, self.target_samples, self.device)
         self.weights = FieldOptimizer(self.field, cfg.lr, cfg.weight_decay, cfg.weight_average, cfg.lazy_table_adam)
@@ -135,11 +137,12 @@ class Trainer:
         (:meth:`NGPField.background`, differentiable), or black without one. With appearance
         codes, each ray's training image goes to :attr:`batch_images` (for :meth:`_render_batch`).
         With camera refinement the rays are corrected by their image's pose correction
-        (:attr:`cameras`), differentiably."""
+        (:attr:`cameras`), differentiably. With training masks, :attr:`batch_kept` says which rays count."""
         seed = (self.step_count * 0x9E3779B1 + self.config.seed * 0x85EBCA6B
                 + self.ray_stream * 0xC2B2AE35) & 0x7FFFFFFF
         sub = self.config.supersample
         b = sample_pixels(self.train_split, max(1, n // (sub * sub)), seed, sub)
+        self.batch_kept = pixels_kept(self.train_split.masks, b.pixels, sub)
         images = None
         if self.field.appearance is not None or self.cameras is not None:
             images = b.pixels[:, 0].long().repeat_interleave(sub * sub)
@@ -193,7 +196,8 @@ class Trainer:
                 dist = phases.distortion(out["weights"], out["t_starts"], out["t_ends"], out["ray_offsets"], near)
             # rays dropped for lack of room in the sample buffer (ray_mask) are left out
             # a pixel is the mean of its sub-rays, kept only if all of them are
-            loss, mse = phases.loss(out["rgb"], out["opacity"], target, background, out.get("ray_mask"), dist,
+            loss, mse = phases.loss(out["rgb"], out["opacity"], target, background,
+                                    rays_kept(out.get("ray_mask"), self.batch_kept), dist,
                                     cfg.distortion_weight, huber_delta=0.1 if cfg.loss == "huber" else None,
                                     rays_per_pixel=cfg.supersample ** 2)
             self.weights.zero_grad()
