@@ -13,7 +13,7 @@ import numpy as np
 from PIL import Image
 
 from ngp_warp.data.data_error import DataError
-from ngp_warp.data.transforms_json import Frame
+from ngp_warp.data.transforms_json import Frame, log
 
 PLAIN_MODES = ("RGB", "RGBA", "L", "LA")  # Pillow's 8-bit modes, whose pixels need no conversion
 
@@ -117,11 +117,25 @@ def load_masks(frames: list[Frame], sizes: list[tuple[int, int]], downscale: int
     for k, frame in enumerate(frames):
         if frame.mask is None:
             continue
-        a = read_image(frame.mask)
+        a = _mask_values(frame.mask)
         if (a.shape[1], a.shape[0]) != sizes[k]:
             raise DataError(f"{frame.mask}: mask is {a.shape[1]}x{a.shape[0]} but its image "
                             f"({frame.image.name}) is {sizes[k][0]}x{sizes[k][1]}")
         a = a[: h * downscale, : w * downscale]
-        keep = (a[..., :3] == 0).all(axis=2) if frame.mask_marks_out else a[..., 0] > 0
+        colour = a[..., :1] if a.shape[2] <= 2 else a[..., :3]  # grey (+ alpha) or RGB(A)
+        keep = (colour == 0).all(axis=2) if frame.mask_marks_out else a[..., 0] > 0
         out[k] = keep.reshape(h, downscale, w, downscale).all(axis=(1, 3))
+    empty = [f.mask.name for f, m in zip(frames, out) if not m.any()]
+    if empty:
+        log.warning(f"ngp-warp: {len(empty)} training mask(s) leave out every pixel (first: {empty[0]})")
     return out
+
+
+def _mask_values(path: Path) -> np.ndarray:
+    """[H, W, C] a mask file's stored values: a palette image's indices, a grey image's levels."""
+    try:
+        with Image.open(path) as im:
+            a = np.asarray(im)
+    except Exception as e:  # Pillow raises many types for corrupt or unknown files
+        raise DataError(f"{path}: cannot read mask ({e})") from None
+    return a[..., None] if a.ndim == 2 else a

@@ -172,15 +172,15 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
         mask = frame.get("mask_path")
         if mask is not None and (not isinstance(mask, str) or not mask):
             raise DataError(f"{where}: mask_path must be a non-empty string, got {short(mask)}")
+        if not image.is_file():
+            missing.append(image)
+            continue
         mask = None if mask is None else image_path(base, mask, where)
         if mask is not None and not mask.is_file():
             raise DataError(f"{where}: mask_path {mask}: no such file")
         dynamic = image.with_name(f"dynamic_mask_{image.stem}.png")
         marks_out = mask is None and dynamic.is_file()
-        if image.is_file():
-            out.append(Frame(where, image, c2w, [top, _camera_keys(frame)], dynamic if marks_out else mask, marks_out))
-        else:
-            missing.append(image)
+        out.append(Frame(where, image, c2w, [top, _camera_keys(frame)], dynamic if marks_out else mask, marks_out))
     if not out:
         raise DataError(f"{source}: none of the {len(frames)} frames has its image (first missing: {missing[0]})")
     if missing:

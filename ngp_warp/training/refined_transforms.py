@@ -45,6 +45,8 @@ def refined_transforms(scene_path: str | Path, downscale: int, image_names: list
     for i, frame in enumerate(meta["frames"]):
         image = image_path(base, frame["file_path"], f"{source} frame {i}")
         moved = {**frame, "file_path": image.absolute().as_posix()}
+        if isinstance(frame.get("mask_path"), str) and frame["mask_path"]:
+            moved["mask_path"] = image_path(base, frame["mask_path"], f"{source} frame {i}").absolute().as_posix()
         if str(image) in refined:
             moved["transform_matrix"] = refined.pop(str(image))
         frames.append(moved)

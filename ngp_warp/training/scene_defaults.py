@@ -151,7 +151,7 @@ def choose_contraction(setting: str | None, scene: Scene) -> str | None:
     if scene.contraction is not None:
         return scene.contraction
     if scene.source != "nerf-synthetic" and cameras_surround_centre(scene.train.c2w):
-        return None if plain_backdrop(scene.train.images) else "l2"
+        return None if plain_backdrop(scene.train.images, scene.train.masks) else "l2"
     return None
 
 
@@ -165,7 +165,8 @@ def choose_aabb_scale(setting: int | str | None, scene: Scene, contraction: str 
     if setting != "auto":
         return setting
     object_on_backdrop = (scene.source == "colmap" and contraction is None
-                          and cameras_surround_centre(scene.train.c2w) and plain_backdrop(scene.train.images))
+                          and cameras_surround_centre(scene.train.c2w)
+                          and plain_backdrop(scene.train.images, scene.train.masks))
     return seen_aabb_scale(scene) if object_on_backdrop else None
 
 
@@ -187,21 +188,26 @@ def seen_aabb_scale(scene: Scene) -> int:
     return min(2 ** max(0, math.ceil(math.log2(max(seen / unit, 1.0)))), files)
 
 
-def edge_pixels(images: torch.Tensor) -> torch.Tensor:
+def edge_pixels(images: torch.Tensor, masks: torch.Tensor | None = None) -> torch.Tensor:
     """[P, 3] the RGB of every pixel on the outer edges of ``images`` ([N, H, W, C], any dtype;
-    corners counted twice), where a capture mostly sees what lies beyond its subject."""
-    edges = torch.cat([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
-    return edges[..., :3].reshape(-1, 3)
+    corners counted twice), where a capture mostly sees what lies beyond its subject; with
+    training ``masks`` ([N, H, W] bool) only the pixels they keep, unless they keep none there."""
+    def edges(a: torch.Tensor) -> torch.Tensor:
+        return torch.cat([a[:, 0], a[:, -1], a[:, :, 0], a[:, :, -1]], 1)
+    rgb = edges(images)[..., :3].reshape(-1, 3)
+    kept = None if masks is None else edges(masks).reshape(-1)
+    return rgb if kept is None or not bool(kept.any()) else rgb[kept]
 
 
-def plain_backdrop(images: torch.Tensor) -> bool:
+def plain_backdrop(images: torch.Tensor, masks: torch.Tensor | None = None) -> bool:
     """Whether ``images`` ([N, H, W, C] uint8) show their subject on one plain colour, as
     object captures composited on white (or masked onto any one colour) do: at least 98 % of the
     pixels on the images' outer edges lie within 8 levels of their median colour in every
     channel. Such a capture has nothing beyond its subject, so it trains bounded: contracted,
     the demo scene on white as a COLMAP model scored 20.6 dB at 60 s on an H100 against 28.9
-    bounded, while over the unbounded scene's sky at infinity it scored 24.8 against 16.1."""
-    border = edge_pixels(images).to(torch.int16)
+    bounded, while over the unbounded scene's sky at infinity it scored 24.8 against 16.1.
+    Pixels that training ``masks`` ([N, H, W] bool) leave out do not count."""
+    border = edge_pixels(images, masks).to(torch.int16)
     median = border.median(0).values
     close = ((border - median).abs() <= _BACKDROP_TOLERANCE).all(-1)
     return float(close.float().mean()) >= _BACKDROP_SHARE

@@ -70,7 +70,7 @@ class Trainer:
         # opaque images of contracted scenes: fitted over the field's learned environment (view_background)
         self.black_background = self.model.learns_background and self.train_split.images.shape[-1] == 3
         if self.field.environment is not None:
-            _start_environment(self.field.environment, self.train_split.images)
+            _start_environment(self.field.environment, self.train_split.images, self.train_split.masks)
         self.batch_images: torch.Tensor | None = None  # [p k] int64 image per ray of the last batch
         self.batch_kept: torch.Tensor | None = None  # [p k] bool: the ray's pixel is one to train on
         self.target_samples = default_target_samples(cfg, self.device.type)
@@ -385,12 +385,12 @@ class TrainingDiverged(RuntimeError):
 
 
 @torch.no_grad()
-def _start_environment(environment: torch.nn.Linear, images: torch.Tensor) -> None:
+def _start_environment(environment: torch.nn.Linear, images: torch.Tensor, masks: torch.Tensor | None) -> None:
     """Start the learned environment (:meth:`NGPField.background`) at the mean colour of the
     training images' outermost pixels, where a capture mostly sees its background. Adam moves
     the sigmoid's bias by about the learning rate per step, so from grey a white backdrop takes
     hundreds of steps, while density in front of the cameras learns to paint it in a few (the
     demo scene as a COLMAP model: 9.7 dB after 300 CPU steps from grey, 16.3 from here, as
-    with the backdrop given)."""
-    colour = edge_pixels(images).float().mean(0) / 255.0
+    with the backdrop given); the pixels training ``masks`` leave out do not count."""
+    colour = edge_pixels(images, masks).float().mean(0) / 255.0
     environment.bias.copy_(torch.logit(colour.clamp(0.02, 0.98)))
