@@ -53,7 +53,7 @@ class Split:
         names: N image file paths.
         width, height: W and H.
         fisheye: the cameras are OpenCV fisheye (equidistant) lenses.
-        masks: [N, H, W] bool, the pixels to train on (the frames' ``mask_path``), or None: all.
+        masks: [N, H, W] bool, the pixels to train on (the frames' masks, ``Frame.mask``), or None: all.
         has_distortion: any distortion coefficient is non-zero, or fisheye (computed; pass
             ``distortion`` to :func:`generate_rays` only then).
     """
