@@ -90,7 +90,8 @@ def camera_ray(u: float, v: float, f: wp.vec4, lens_model: int, k: vec6, c2w: wp
 
 # Ray i: sub-ray s = i mod sub² of pixel q = i div sub²; the pixel's image k and (px, py) are
 # drawn uniformly (Warp's RNG keyed by seed and q, so a pixel's sub-rays agree; its first
-# sub-ray writes the pixel's row q of pixels, target and background), then
+# sub-ray writes the pixel's row q of pixels, target and background), and drawn again, up to
+# redraws times, while masks[k, py, px] (uint8 [N, H, W], when redraws > 0) is 0; then
 #   d = camera_ray(px + ox, py + oy) of image k,  o = t,
 #   (ox, oy) = ((s mod sub) + 1/2, (s div sub) + 1/2) / sub  (the pixel centre for sub = 1);
 #   bg ~ U[0, 1)³ with an alpha channel (else white), target = rgb a + bg (1 − a), values / 255.
@@ -105,6 +106,8 @@ def sample_pixels(
     channels: int,
     lens_model: int,
     images: wp.array(dtype=wp.uint8),
+    masks: wp.array(dtype=wp.uint8),
+    redraws: int,
     c2w: wp.array(dtype=float),
     intrinsics: wp.array(dtype=wp.vec4),
     distortion: wp.array(dtype=vec6),
@@ -121,6 +124,12 @@ def sample_pixels(
     k = wp.randi(rng, 0, n_images)
     px = wp.randi(rng, 0, width)
     py = wp.randi(rng, 0, height)
+    for _ in range(redraws):
+        if masks[(k * height + py) * width + px] != wp.uint8(0):
+            break
+        k = wp.randi(rng, 0, n_images)
+        px = wp.randi(rng, 0, width)
+        py = wp.randi(rng, 0, height)
 
     ox = (float(s % sub) + 0.5) / float(sub)
     oy = (float(s // sub) + 0.5) / float(sub)

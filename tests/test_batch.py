@@ -54,6 +54,30 @@ def test_draws_uniformly_and_depends_only_on_the_seed():
     assert (other.pixels != b.pixels).any(-1).float().mean() > 0.99
 
 
+def with_masks(split: Split, masks: torch.Tensor) -> Split:
+    return Split(split.images, split.c2w, split.intrinsics, split.distortion, split.names, split.width,
+                 split.height, split.fisheye, masks)
+
+
+def test_a_mask_draws_again_where_it_leaves_pixels_out():
+    split = random_split()
+    g = torch.Generator().manual_seed(3)
+    sparse = torch.rand(len(split), split.height, split.width, generator=g) < 0.2  # keeps a fifth
+    b = sample_pixels(with_masks(split, sparse), 8000, seed=5)
+    k, px, py = b.pixels.long().unbind(-1)
+    assert sparse[k, py, px].float().mean() > 0.95  # 1 − 0.8^17 = 0.977 expected, 0.2 without redraws
+    rays_o, rays_d = split.rays(k, px, py)  # rays, targets and backgrounds belong to the drawn pixel
+    torch.testing.assert_close(b.rays_d, rays_d, rtol=0, atol=1e-6)
+    torch.testing.assert_close(b.target, composite_on(split.images[k, py, px], b.background), rtol=0, atol=1e-6)
+    # a mask that keeps everything draws what no mask draws
+    full = sample_pixels(with_masks(split, torch.ones_like(sparse)), 8000, seed=5)
+    plain = sample_pixels(split, 8000, seed=5)
+    assert torch.equal(full.pixels, plain.pixels) and torch.equal(full.background, plain.background)
+    # a mask that keeps nothing: every pixel stays where its last redraw fell, none kept
+    empty = sample_pixels(with_masks(split, torch.zeros_like(sparse)), 100, seed=5)
+    assert empty.pixels.shape == (100, 3)
+
+
 @pytest.mark.parametrize("bad", [0, -3, 2.5])
 def test_rejects_bad_counts(bad):
     with pytest.raises(ValueError, match="positive integer"):
@@ -61,9 +85,13 @@ def test_rejects_bad_counts(bad):
 
 
 @pytest.mark.cuda
+@pytest.mark.parametrize("masked", [False, True])
 @pytest.mark.parametrize("sub", [1, 2, 3])
-def test_cuda_draws_what_the_cpu_draws(sub):
+def test_cuda_draws_what_the_cpu_draws(sub, masked):
     split = random_split(distortion=True)
+    if masked:
+        split = with_masks(split, torch.rand(len(split), split.height, split.width,
+                                             generator=torch.Generator().manual_seed(4)) < 0.3)
     cpu = sample_pixels(split, 5000, seed=3, sub=sub)
     gpu = sample_pixels(split.to("cuda"), 5000, seed=3, sub=sub)
     assert torch.equal(gpu.pixels.cpu(), cpu.pixels)

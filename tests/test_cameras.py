@@ -145,7 +145,8 @@ def _kernel_rays(split: Split, n: int, seed: int):
     pixels = torch.empty(n, 3, dtype=torch.int32)
     _wp.launch(K.sample_pixels, n,
                [seed, 1, len(split), split.width, split.height, 3, split.lens_model, split.images.view(-1),
-                split.c2w.reshape(-1).contiguous(), split.intrinsics, split.distortion, pixels, *out], "cpu")
+                torch.ones(1, dtype=torch.uint8), 0, split.c2w.reshape(-1).contiguous(), split.intrinsics,
+                split.distortion, pixels, *out], "cpu")
     return pixels, out[1]
 
 
