@@ -137,7 +137,8 @@ def test_pixels_a_mask_leaves_out_change_nothing_in_training(demo, tmp_path):
 
 def test_palette_masks_read_their_indices_and_an_empty_mask_warns(demo, tmp_path, caplog):
     path = masked_copy(demo, tmp_path, "palette", {0: left_half_out()})
-    palette = Image.fromarray(left_half_out().astype(np.uint8), mode="P")
+    palette = Image.new("P", (W, H))
+    palette.putdata(left_half_out().astype(np.uint8).reshape(-1).tolist())
     palette.putpalette([0, 0, 0, 0, 255, 0] + [0] * 762)  # index 1 (keep) shown green: red channel 0
     palette.save(path / "mask_0.png")
     meta = json.loads((path / "transforms_train.json").read_text())
