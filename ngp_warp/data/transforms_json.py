@@ -175,9 +175,10 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
         if not image.is_file():
             missing.append(image)
             continue
-        mask = None if mask is None else image_path(base, mask, where)
-        if mask is not None and not mask.is_file():
-            raise DataError(f"{where}: mask_path {mask}: no such file")
+        if mask is not None:
+            mask = image_path(base, mask, where)
+            if not mask.is_file():
+                raise DataError(f"{where}: mask_path {mask}: no such file")
         dynamic = image.with_name(f"dynamic_mask_{image.stem}.png")
         marks_out = mask is None and dynamic.is_file()
         out.append(Frame(where, image, c2w, [top, _camera_keys(frame)], dynamic if marks_out else mask, marks_out))
