@@ -209,14 +209,14 @@ def test_frames_of_a_video_fill_the_scene_images(tmp_path, monkeypatch):
                 macro_block_size=16)
     seen = {}
 
-    def stop(work, images_dir, sizes, matcher, config):
-        seen.update(sizes=sizes, matcher=matcher)
+    def stop(work, images_dir, sizes, matcher, config, masks):
+        seen.update(sizes=sizes, matcher=matcher, masks=masks)
         raise DataError("stop here")
 
     monkeypatch.setattr(P, "_features_and_matches", stop)
     with pytest.raises(DataError, match="stop here"):
         P.process(video, tmp_path / "scene", P.ProcessConfig(frames=5, show_progress=False))
-    assert len(seen["sizes"]) == 5 and seen["matcher"] == "sequential"
+    assert len(seen["sizes"]) == 5 and seen["matcher"] == "sequential" and seen["masks"] is None
     assert set(seen["sizes"].values()) == {(64, 64)}
     assert not (tmp_path / "scene").exists() and _leftovers(tmp_path) == []
 

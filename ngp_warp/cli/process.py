@@ -27,6 +27,9 @@ def add_process_parser(subparsers) -> None:
     p.add_argument("--sift", default=ProcessConfig.sift, choices=SIFT_KINDS,
                    help="dense: 16384 features, affine shapes, domain-size pooling (CPU); standard: COLMAP's")
     p.add_argument("--mapper", default=ProcessConfig.mapper, choices=MAPPERS, help="structure from motion's mapper")
+    p.add_argument("--masks", metavar="DIR",
+                   help="photos only: a mask per photo (NAME.png or STEM.png; black = leave out), used for "
+                        "the features and named in transforms.json for training")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_process)
@@ -35,7 +38,7 @@ def add_process_parser(subparsers) -> None:
 def cmd_process(args) -> None:
     """The ``process`` subcommand: run :func:`process` and print what it made."""
     config = ProcessConfig(frames=args.frames, fps=args.fps, matcher=args.matcher, camera_model=args.camera_model,
-                           device=args.device, sift=args.sift, mapper=args.mapper, overwrite=args.overwrite,
+                           device=args.device, sift=args.sift, mapper=args.mapper, masks=args.masks, overwrite=args.overwrite,
                            show_progress=not args.quiet)
     try:
         config.check()
@@ -48,7 +51,8 @@ def cmd_process(args) -> None:
           f"{report.mean_reprojection_error:.3f} px ({config.sift} SIFT on {report.sift_device}, {report.matcher} "
           f"matching, {report.mapper} mapping, "
           f"{report.seconds['total']:.1f} s)")
-    print(f"wrote {report.scene / 'transforms.json'}, {report.scene / 'sparse' / '0'}/, {report.scene / 'images'}/")
+    masks = f", {report.scene / 'masks'}/" if config.masks is not None else ""
+    print(f"wrote {report.scene / 'transforms.json'}, {report.scene / 'sparse' / '0'}/, {report.scene / 'images'}/{masks}")
     if report.mapper != config.mapper:
         print(f"the {config.mapper} mapper's model contradicted its own matches; the {report.mapper} mapper's is kept")
     if report.contradicted:

@@ -117,7 +117,7 @@ def load_masks(frames: list[Frame], sizes: list[tuple[int, int]], downscale: int
     for k, frame in enumerate(frames):
         if frame.mask is None:
             continue
-        a = _mask_values(frame.mask)
+        a = mask_values(frame.mask)
         if (a.shape[1], a.shape[0]) != sizes[k]:
             raise DataError(f"{frame.mask}: mask is {a.shape[1]}x{a.shape[0]} but its image "
                             f"({frame.image.name}) is {sizes[k][0]}x{sizes[k][1]}")
@@ -131,7 +131,7 @@ def load_masks(frames: list[Frame], sizes: list[tuple[int, int]], downscale: int
     return out
 
 
-def _mask_values(path: Path) -> np.ndarray:
+def mask_values(path: Path) -> np.ndarray:
     """[H, W, C] a mask file's stored values: a palette image's indices, a grey image's levels."""
     try:
         with Image.open(path) as im:

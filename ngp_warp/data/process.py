@@ -28,6 +28,7 @@ from pathlib import Path
 from ngp_warp.data.data_error import DataError
 from ngp_warp.data.database_rows import DatabaseRows
 from ngp_warp.data.pose_errors import pose_errors  # noqa: F401  (process's callers check poses with it)
+from ngp_warp.data.process_masks import gather_masks, name_masks
 
 EXTRA = 'pip install "ngp-warp[process]"'
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -66,6 +67,10 @@ class ProcessConfig:
         (in 4 of 14 runs with COLMAP's 15 verified matches a pair, in 5 of 5 with 30); on
         fox's 50 photos dense + global 50 at 0.60° (0.7° at most), as the standard incremental
         run's 0.71°; on the demo room both 40 of 40 at 0.03°.
+    masks: a folder with a mask per photo (``NAME.png`` or ``STEM.png``; a pixel is kept where
+        its first channel is nonzero): no features where a mask leaves pixels out, and the
+        scene's frames name the masks for training (:mod:`ngp_warp.data.process_masks`).
+        Photos only.
     overwrite: replace an existing SCENE.
     show_progress: progress bars on stderr.
     """
@@ -77,6 +82,7 @@ class ProcessConfig:
     device: str = "auto"
     sift: str = "dense"
     mapper: str = "global"
+    masks: str | Path | None = None
     overwrite: bool = False
     show_progress: bool = True
 
@@ -206,14 +212,18 @@ def _sift_device(pycolmap, name: str):
     return pycolmap.Device.cuda if name != "cpu" and pycolmap.has_cuda else pycolmap.Device.cpu
 
 
-def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: str, config: ProcessConfig):
-    """SIFT features of every image, then matched and verified pairs, into ``work/database.db``."""
+def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: str, config: ProcessConfig,
+                          masks: Path | None):
+    """SIFT features of every image (none where its mask in ``masks`` is 0), then matched and
+    verified pairs, into ``work/database.db``."""
     import pycolmap
 
     database, device, show = work / "database.db", _sift_device(pycolmap, config.device), config.show_progress
     one_size = len(set(sizes.values())) == 1
     mode = pycolmap.CameraMode.SINGLE if one_size else pycolmap.CameraMode.PER_IMAGE
     reader = pycolmap.ImageReaderOptions(camera_model=config.camera_model)
+    if masks is not None:
+        reader.mask_path = str(masks)
     extraction = pycolmap.FeatureExtractionOptions()
     if config.sift == "dense":
         extraction.sift.max_num_features = DENSE_SIFT_FEATURES
@@ -315,12 +325,13 @@ def _build(source: Path, tmp: Path, config: ProcessConfig, report: dict) -> None
     sizes, is_video = _gather_images(source, tmp / "images", config)
     if len(sizes) < MIN_REGISTERED:
         raise DataError(f"{source}: {len(sizes)} image(s); structure from motion needs at least {MIN_REGISTERED}")
+    masks = None if config.masks is None else gather_masks(Path(config.masks), sizes, tmp)
     report["seconds"]["frames" if is_video else "copy"] = time.perf_counter() - clock
     matcher = _pick_matcher(config, is_video, len(sizes))
     work = tmp / ".sfm"
     work.mkdir()
     clock = time.perf_counter()
-    database, report["sift_device"] = _features_and_matches(work, tmp / "images", sizes, matcher, config)
+    database, report["sift_device"] = _features_and_matches(work, tmp / "images", sizes, matcher, config, masks)
     report["seconds"]["features+matching"] = time.perf_counter() - clock
     clock = time.perf_counter()
     model, report["mapper"], report["contradicted"] = _sound_mapping(work, database, tmp / "images", len(sizes),
@@ -331,6 +342,8 @@ def _build(source: Path, tmp: Path, config: ProcessConfig, report: dict) -> None
     model.write(sparse)
     shutil.rmtree(work)
     meta = colmap_to_transforms(read_colmap_model(sparse), image_dir_rel="images")
+    if masks is not None:
+        name_masks(meta)
     (tmp / "transforms.json").write_text(json.dumps(meta, indent=2))
     report.update(registered=model.num_reg_images(), total=len(sizes), matcher=matcher,
                   mean_reprojection_error=float(model.compute_mean_reprojection_error()))
@@ -358,6 +371,8 @@ def process(source: str | Path, scene_dir: str | Path, config: ProcessConfig | N
         raise DataError(f"{out}: already exists (choose another folder or pass --overwrite)")
     if out.resolve() == source.resolve() or out.resolve() in source.resolve().parents:
         raise DataError(f"{out}: the scene folder cannot hold its own input {source}")
+    if config.masks is not None and source.is_file():
+        raise DataError(f"--masks {config.masks}: masks go with a folder of photos, and {source} is a video")
     created = [p for p in [out.parent, *out.parent.parents] if not p.exists()]
     report, start = {"seconds": {}}, time.perf_counter()
     try:

@@ -1,0 +1,64 @@
+"""``ngp-warp process --masks``: a mask per photo, for COLMAP's features and for training.
+
+A mask is read as a training mask (``mask_path``) is: a pixel is kept where its first stored
+channel is nonzero. ``process`` writes each one into the scene as ``masks/NAME.png`` (NAME the
+photo's file name, COLMAP's naming), a grey PNG of 255 where kept and 0 where not, which
+COLMAP reads as it is (no features on 0), and names it in the photo's frame of
+``transforms.json`` (``"mask_path"``), so that training leaves the same pixels out.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ngp_warp.data.data_error import DataError
+from ngp_warp.data.images import mask_values
+
+MASKS_DIR = "masks"
+
+
+def mask_for(photo: str, folder: Path) -> Path | None:
+    """The mask of photo file ``photo`` in ``folder``: ``photo.png`` (COLMAP's naming, e.g.
+    ``0001.jpg.png``) or ``STEM.png`` (nerfstudio's, ``0001.png``); None when neither exists."""
+    for name in (f"{photo}.png", f"{Path(photo).stem}.png"):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def gather_masks(folder: Path, sizes: dict[str, tuple[int, int]], scene: Path) -> Path:
+    """Write every photo's mask from ``folder`` into ``scene/masks/NAME.png`` (255 kept, 0 left
+    out) and return that folder. ``sizes``: {photo name: (height, width)}.
+
+    Raises:
+        DataError: ``folder`` is not a folder, a photo has no mask (the count and the first
+            named), a mask is unreadable, or its size differs from its photo's.
+    """
+    from PIL import Image
+
+    if not folder.is_dir():
+        raise DataError(f"--masks {folder}: no such folder")
+    found = {name: mask_for(name, folder) for name in sizes}
+    missing = [name for name, path in found.items() if path is None]
+    if missing:
+        raise DataError(f"--masks {folder}: no mask for {len(missing)} of {len(sizes)} photos (first: "
+                        f"{missing[0]}; looked for {missing[0]}.png and {Path(missing[0]).stem}.png)")
+    out = scene / MASKS_DIR
+    out.mkdir()
+    for name, path in found.items():
+        values = mask_values(path)
+        if values.shape[:2] != sizes[name]:
+            raise DataError(f"{path}: mask is {values.shape[1]}x{values.shape[0]} but its photo {name} is "
+                            f"{sizes[name][1]}x{sizes[name][0]}")
+        keep = np.where(values[..., 0] > 0, 255, 0).astype(np.uint8)
+        Image.fromarray(keep).save(out / f"{name}.png")
+    return out
+
+
+def name_masks(meta: dict) -> None:
+    """Give every frame of ``meta`` (transforms.json, its images in ``images/``) its mask's
+    ``mask_path``, relative to the scene."""
+    for frame in meta["frames"]:
+        frame["mask_path"] = f"{MASKS_DIR}/{Path(frame['file_path']).name}.png"
