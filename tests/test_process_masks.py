@@ -84,6 +84,9 @@ def test_masks_are_written_named_and_trained_on(photos, tmp_path, capsys):
         written = iio.imread(scene / frame["mask_path"])
         assert written.dtype == np.uint8 and written.ndim == 2
         assert (written[:, :LEFT] == 0).all() and (written[:, LEFT:] == 255).all()
+    model = pycolmap.Reconstruction(str(scene / "sparse" / "0"))  # COLMAP got the masks
+    x = np.array([p.xy[0] for image in model.images.values() for p in image.points2D])
+    assert len(x) > 100 and x.min() >= LEFT - 1
     split = load_scene(scene).train  # every 8th frame held out
     assert split.masks is not None and split.masks.shape == (len(split.names), SIZE, SIZE)
     assert not split.masks[:, :, :LEFT].any() and split.masks[:, :, LEFT:].all()
@@ -97,11 +100,13 @@ def test_mask_names(tmp_path):
     assert mask_for("c.jpg", tmp_path) is None
 
 
-@pytest.mark.parametrize("case", ["no folder", "one missing", "wrong size", "unreadable", "video"])
+@pytest.mark.parametrize("case", ["no folder", "one missing", "wrong size", "unreadable", "video", "shared",
+                                  "among the photos", "inside the scene"])
 def test_bad_masks_are_one_line_and_write_nothing(photos, tmp_path, capsys, case):
     masks = tmp_path / "masks"
     source = photos / "images"
-    if case != "no folder":
+    scene = tmp_path / "scene"
+    if case not in ("no folder", "among the photos"):
         masks.mkdir()
         for i in range(N_PHOTOS):
             iio.imwrite(masks / f"{i:03d}.png", np.full((SIZE, SIZE), 255, np.uint8))
@@ -114,13 +119,26 @@ def test_bad_masks_are_one_line_and_write_nothing(photos, tmp_path, capsys, case
     elif case == "video":
         source = tmp_path / "clip.mp4"
         iio.imwrite(source, np.zeros((4, 32, 32, 3), np.uint8), fps=4, codec="libx264")
+    elif case == "shared":  # 000.png and 000.jpg both find 000.png
+        source = tmp_path / "photos"
+        source.mkdir()
+        for name in ("000.png", "001.png", "002.png"):
+            (source / name).write_bytes((photos / "images" / name).read_bytes())
+        iio.imwrite(source / "000.jpg", iio.imread(photos / "images" / "003.png"))
+    elif case == "among the photos":
+        masks = source
+    elif case == "inside the scene":  # --overwrite would delete them with the old scene
+        scene.mkdir()
+        masks = masks.rename(scene / "raw_masks")
     expected = {"no folder": "no such folder", "one missing": f"no mask for 1 of {N_PHOTOS} photos (first: 003.png",
                 "wrong size": f"mask is {SIZE + 2}x{SIZE} but its photo 005.png is {SIZE}x{SIZE}",
-                "unreadable": "cannot read mask", "video": "masks go with a folder of photos"}[case]
-    scene = tmp_path / "scene"
-    assert main(["process", str(source), "--out", str(scene), "--quiet", "--masks", str(masks)]) == 2
+                "unreadable": "cannot read mask", "video": "masks go with a folder of photos",
+                "shared": "photos 000.jpg and 000.png would share the mask 000.png",
+                "among the photos": "in a folder of their own", "inside the scene": "inside the scene folder"}[case]
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    assert main(["process", str(source), "--out", str(scene), "--quiet", "--masks", str(masks), "--overwrite"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and expected in err[0], err
-    assert not scene.exists() and not [p for p in tmp_path.iterdir() if ".partial" in p.name]
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # nothing written or lost
     with pytest.raises(DataError):  # the library raises the same
         P.process(source, scene, P.ProcessConfig(masks=masks, show_progress=False))

@@ -12,7 +12,8 @@ def add_process_parser(subparsers) -> None:
     p = subparsers.add_parser("process", help="photos or a video -> a posed scene (COLMAP via pycolmap; "
                                               f"needs {EXTRA})")
     p.add_argument("input", help="a folder of images (.jpg, .jpeg, .png) or a video file")
-    p.add_argument("--out", required=True, help="scene folder to create (images/, sparse/0, transforms.json)")
+    p.add_argument("--out", required=True,
+                   help="scene folder to create (images/, sparse/0, transforms.json; masks/ with --masks)")
     rate = p.add_mutually_exclusive_group()
     rate.add_argument("--frames", type=positive(int, high=MAX_FRAMES),
                       help="video: keep this many frames, evenly spread (default 100)")
@@ -28,8 +29,8 @@ def add_process_parser(subparsers) -> None:
                    help="dense: 16384 features, affine shapes, domain-size pooling (CPU); standard: COLMAP's")
     p.add_argument("--mapper", default=ProcessConfig.mapper, choices=MAPPERS, help="structure from motion's mapper")
     p.add_argument("--masks", metavar="DIR",
-                   help="photos only: a mask per photo (NAME.png or STEM.png; black = leave out), used for "
-                        "the features and named in transforms.json for training")
+                   help="photos only: a mask per photo (NAME.png or STEM.png; 0 in its first channel = "
+                        "leave out), used for the features and named in transforms.json for training")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_process)
@@ -38,8 +39,8 @@ def add_process_parser(subparsers) -> None:
 def cmd_process(args) -> None:
     """The ``process`` subcommand: run :func:`process` and print what it made."""
     config = ProcessConfig(frames=args.frames, fps=args.fps, matcher=args.matcher, camera_model=args.camera_model,
-                           device=args.device, sift=args.sift, mapper=args.mapper, masks=args.masks, overwrite=args.overwrite,
-                           show_progress=not args.quiet)
+                           device=args.device, sift=args.sift, mapper=args.mapper, masks=args.masks,
+                           overwrite=args.overwrite, show_progress=not args.quiet)
     try:
         config.check()
     except ValueError as e:
@@ -52,7 +53,8 @@ def cmd_process(args) -> None:
           f"matching, {report.mapper} mapping, "
           f"{report.seconds['total']:.1f} s)")
     masks = f", {report.scene / 'masks'}/" if config.masks is not None else ""
-    print(f"wrote {report.scene / 'transforms.json'}, {report.scene / 'sparse' / '0'}/, {report.scene / 'images'}/{masks}")
+    scene = report.scene
+    print(f"wrote {scene / 'transforms.json'}, {scene / 'sparse' / '0'}/, {scene / 'images'}/{masks}")
     if report.mapper != config.mapper:
         print(f"the {config.mapper} mapper's model contradicted its own matches; the {report.mapper} mapper's is kept")
     if report.contradicted:

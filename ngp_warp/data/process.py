@@ -8,8 +8,9 @@ neighbours; exhaustive for a photo set of up to :data:`EXHAUSTIVE_MAX` images) -
 incremental) mapping, checked against the images' own matches (a model folded by the subject's
 symmetry is mapped again by the other mapper, and reported if that does not help:
 :mod:`ngp_warp.data.fold_check`). SCENE then holds ``images/``,
-``sparse/0`` (the COLMAP model, binary) and ``transforms.json`` (instant-ngp format, the scene
-normalised by :func:`ngp_warp.data.colmap.colmap_to_transforms`).
+``sparse/0`` (the COLMAP model, binary), ``transforms.json`` (instant-ngp format, the scene
+normalised by :func:`ngp_warp.data.colmap.colmap_to_transforms`) and, with masks, ``masks/``
+(:mod:`ngp_warp.data.process_masks`).
 
 SCENE is built in a temporary sibling folder renamed into place at the end: a failure or Ctrl-C
 leaves nothing behind, and an existing SCENE is replaced only when asked (``overwrite``).
@@ -28,7 +29,7 @@ from pathlib import Path
 from ngp_warp.data.data_error import DataError
 from ngp_warp.data.database_rows import DatabaseRows
 from ngp_warp.data.pose_errors import pose_errors  # noqa: F401  (process's callers check poses with it)
-from ngp_warp.data.process_masks import gather_masks, name_masks
+from ngp_warp.data.process_masks import check_masks, gather_masks, name_masks
 
 EXTRA = 'pip install "ngp-warp[process]"'
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -358,8 +359,10 @@ def process(source: str | Path, scene_dir: str | Path, config: ProcessConfig | N
     Raises:
         DataError: pycolmap missing, bad input (no such path, no images, a file that is no
             video, an unreadable image, fewer than 3 images), ``scene_dir`` exists (without
-            ``config.overwrite``), fewer than 3 images registered, or the model split in parts.
-            Nothing is left in ``scene_dir``'s place then.
+            ``config.overwrite``), fewer than 3 images registered, the model split in parts, or
+            masks that do not fit (:func:`~ngp_warp.data.process_masks.check_masks`,
+            :func:`~ngp_warp.data.process_masks.gather_masks`). Nothing is left in
+            ``scene_dir``'s place then.
     """
     from ngp_warp.atomic import atomic_dir
 
@@ -371,8 +374,8 @@ def process(source: str | Path, scene_dir: str | Path, config: ProcessConfig | N
         raise DataError(f"{out}: already exists (choose another folder or pass --overwrite)")
     if out.resolve() == source.resolve() or out.resolve() in source.resolve().parents:
         raise DataError(f"{out}: the scene folder cannot hold its own input {source}")
-    if config.masks is not None and source.is_file():
-        raise DataError(f"--masks {config.masks}: masks go with a folder of photos, and {source} is a video")
+    if config.masks is not None:
+        check_masks(Path(config.masks), source, out)
     created = [p for p in [out.parent, *out.parent.parents] if not p.exists()]
     report, start = {"seconds": {}}, time.perf_counter()
     try:

@@ -1,7 +1,7 @@
 """``ngp-warp process --masks``: a mask per photo, for COLMAP's features and for training.
 
 A mask is read as a training mask (``mask_path``) is: a pixel is kept where its first stored
-channel is nonzero. ``process`` writes each one into the scene as ``masks/NAME.png`` (NAME the
+channel is nonzero (a palette image's index, not its colour; alpha is ignored). ``process`` writes each one into the scene as ``masks/NAME.png`` (NAME the
 photo's file name, COLMAP's naming), a grey PNG of 255 where kept and 0 where not, which
 COLMAP reads as it is (no features on 0), and names it in the photo's frame of
 ``transforms.json`` (``"mask_path"``), so that training leaves the same pixels out.
@@ -28,23 +28,41 @@ def mask_for(photo: str, folder: Path) -> Path | None:
     return None
 
 
+def check_masks(folder: Path, source: Path, scene: Path) -> None:
+    """Refuse, before any work, masks that cannot go with ``source`` into ``scene``: ``folder``
+    missing, ``source`` a video, the masks among the photos (they would be read as photos), or
+    inside ``scene`` (which ``--overwrite`` replaces)."""
+    if not folder.is_dir():
+        raise DataError(f"--masks {folder}: no such folder")
+    if source.is_file():
+        raise DataError(f"--masks {folder}: masks go with a folder of photos, not a video ({source})")
+    masks, scene = folder.resolve(), scene.resolve()
+    if masks == source.resolve():
+        raise DataError(f"--masks {folder}: keep the masks in a folder of their own, not among the photos")
+    if masks == scene or scene in masks.parents:
+        raise DataError(f"--masks {folder}: the masks cannot be inside the scene folder {scene} (it is replaced)")
+
+
 def gather_masks(folder: Path, sizes: dict[str, tuple[int, int]], scene: Path) -> Path:
     """Write every photo's mask from ``folder`` into ``scene/masks/NAME.png`` (255 kept, 0 left
     out) and return that folder. ``sizes``: {photo name: (height, width)}.
 
     Raises:
-        DataError: ``folder`` is not a folder, a photo has no mask (the count and the first
-            named), a mask is unreadable, or its size differs from its photo's.
+        DataError: a photo has no mask (the count and the first named), two photos share one
+            (``a.jpg`` and ``a.png`` both find ``a.png``), a mask is unreadable, or its size
+            differs from its photo's.
     """
     from PIL import Image
 
-    if not folder.is_dir():
-        raise DataError(f"--masks {folder}: no such folder")
     found = {name: mask_for(name, folder) for name in sizes}
     missing = [name for name, path in found.items() if path is None]
     if missing:
         raise DataError(f"--masks {folder}: no mask for {len(missing)} of {len(sizes)} photos (first: "
                         f"{missing[0]}; looked for {missing[0]}.png and {Path(missing[0]).stem}.png)")
+    shared = [name for name, path in found.items() if list(found.values()).count(path) > 1]
+    if shared:
+        raise DataError(f"--masks {folder}: photos {shared[0]} and {shared[1]} would share the mask "
+                        f"{found[shared[0]].name}; name each mask after its whole photo name ({shared[0]}.png)")
     out = scene / MASKS_DIR
     out.mkdir()
     for name, path in found.items():
