@@ -1,10 +1,11 @@
 """``ngp-warp process --masks``: a mask per photo, for COLMAP's features and for training.
 
 A mask is read as a training mask (``mask_path``) is: a pixel is kept where its first stored
-channel is nonzero (a palette image's index, not its colour; alpha is ignored). ``process`` writes each one into the scene as ``masks/NAME.png`` (NAME the
-photo's file name, COLMAP's naming), a grey PNG of 255 where kept and 0 where not, which
-COLMAP reads as it is (no features on 0), and names it in the photo's frame of
-``transforms.json`` (``"mask_path"``), so that training leaves the same pixels out.
+channel is nonzero (a palette image's index, not its colour; alpha is ignored). ``process``
+writes each one into the scene as ``masks/NAME.png`` (NAME the photo's file name, COLMAP's
+naming), a grey PNG of 255 where kept and 0 where not, which COLMAP reads as it is (no features
+on 0), and names it in the photo's frame of ``transforms.json`` (``"mask_path"``), so that
+training leaves the same pixels out.
 """
 
 from __future__ import annotations
