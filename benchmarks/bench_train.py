@@ -94,12 +94,29 @@ def warm_up(scene, cfg: TrainConfig, device: str) -> None:
     gc.collect()  # the captured graph holds a reference cycle: free its memory now
 
 
+def view_scores(trainer: Trainer, test_every: int, fit_appearance: bool = False, spp: int = 1) -> dict[str, float]:
+    """{test view name: PSNR}: the whole view, or with ``fit_appearance`` its right half with a
+    code fitted on its left half (as ``ngp-warp eval`` scores a scene with codes)."""
+    scores = {}
+    for name, out, gt in iter_test_renders(trainer, every=test_every, fit_appearance=fit_appearance, spp=spp):
+        rgb, gt = (right_half(out["rgb"]), right_half(gt)) if fit_appearance else (out["rgb"], gt)
+        scores[name] = psnr(rgb, gt)
+    return scores
+
+
+def _worst(scores: dict[str, float]) -> str:
+    name = min(scores, key=scores.get)
+    return f"{Path(name).name} {scores[name]:.2f}"
+
+
 def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, spp: int = 1,
                        grid_stats: bool = False) -> list[dict]:
     """Train to each mark (seconds of training wall-clock), stopping the clock to evaluate; the
     learning-rate schedule runs over ``trainer.config.seconds``. ``spp`` > 1 also scores renders
     averaged over that many points per pixel (``psnr_spp``); ``grid_stats`` adds samples per ray
-    and the grid's occupancy (:func:`grid_stats.sample_stats`) as ``grid``."""
+    and the grid's occupancy (:func:`grid_stats.sample_stats`) as ``grid``. Each row holds every
+    view's score (``per_view``, and ``per_view_fitted_right_half`` with codes), and the printed
+    line names the worst view: a view that collapses shows when it does."""
     schedule_seconds = trainer.config.seconds
     dev = trainer.device
     rows = []
@@ -115,20 +132,19 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, sp
             torch.cuda.synchronize(dev)
         ms = 1000 * (trainer.train_seconds - t0) / max(trainer.step_count - steps0, 1)
         start = time.perf_counter()
-        scores = [psnr(out["rgb"], gt) for _, out, gt in iter_test_renders(trainer, every=test_every)]
+        scores = view_scores(trainer, test_every)
         row = {
             "seconds": mark, "train_seconds": trainer.train_seconds, "steps": trainer.step_count,
-            "psnr": float(np.mean(scores)), "n_test": len(scores), "ms_per_step": ms,
+            "psnr": float(np.mean(list(scores.values()))), "n_test": len(scores), "ms_per_step": ms,
             "rays_per_step": float(np.mean(rays[-50:])), "samples_per_step": float(np.mean(samples[-50:])),
             "marched_per_step": float(np.mean(marched[-50:])),
         }
+        row["per_view"] = scores
         if spp > 1:
-            row["psnr_spp"] = float(np.mean([psnr(out["rgb"], gt) for _, out, gt in
-                                             iter_test_renders(trainer, every=test_every, spp=spp)]))
+            row["psnr_spp"] = float(np.mean(list(view_scores(trainer, test_every, spp=spp).values())))
         if trainer.field.appearance is not None:  # what evaluate() reports: fitted code, right half
-            row["psnr_fitted_right_half"] = float(np.mean([
-                psnr(right_half(out["rgb"]), right_half(gt))
-                for _, out, gt in iter_test_renders(trainer, every=test_every, fit_appearance=True)]))
+            row["per_view_fitted_right_half"] = fitted = view_scores(trainer, test_every, fit_appearance=True)
+            row["psnr_fitted_right_half"] = float(np.mean(list(fitted.values())))
         if grid_stats:
             row["grid"] = sample_stats(trainer)
         row["eval_seconds"] = time.perf_counter() - start
@@ -138,7 +154,8 @@ def train_and_evaluate(trainer: Trainer, marks: list[float], test_every: int, sp
               f"  marched {row['marched_per_step']:9.0f}"
               + (f"  PSNR at {spp} spp {row['psnr_spp']:6.2f} dB" if spp > 1 else "")
               + (f"  right half, fitted code {row['psnr_fitted_right_half']:6.2f} dB"
-                 if "psnr_fitted_right_half" in row else ""), flush=True)
+                 if "psnr_fitted_right_half" in row else "")
+              + f"  worst view {_worst(row.get('per_view_fitted_right_half', scores))}", flush=True)
         if grid_stats:
             print(f"        {format_stats(row['grid'])}", flush=True)
     return rows
