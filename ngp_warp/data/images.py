@@ -121,14 +121,22 @@ def load_masks(frames: list[Frame], sizes: list[tuple[int, int]], downscale: int
         if (a.shape[1], a.shape[0]) != sizes[k]:
             raise DataError(f"{frame.mask}: mask is {a.shape[1]}x{a.shape[0]} but its image "
                             f"({frame.image.name}) is {sizes[k][0]}x{sizes[k][1]}")
-        a = a[: h * downscale, : w * downscale]
-        colour = a[..., :1] if a.shape[2] <= 2 else a[..., :3]  # grey (+ alpha) or RGB(A)
-        keep = (colour == 0).all(axis=2) if frame.mask_marks_out else a[..., 0] > 0
+        keep = mask_keeps(a[: h * downscale, : w * downscale], frame.mask_marks_out)
         out[k] = keep.reshape(h, downscale, w, downscale).all(axis=(1, 3))
     empty = [f.mask.name for f, m in zip(frames, out) if not m.any()]
     if empty:
         log.warning(f"ngp-warp: {len(empty)} training mask(s) leave out every pixel (first: {empty[0]})")
     return out
+
+
+def mask_keeps(values: np.ndarray, marks_out: bool = False) -> np.ndarray:
+    """[H, W] bool the pixels a mask's stored ``values`` ([H, W, C], :func:`mask_values`) keep:
+    nerfstudio's ``mask_path`` keeps those whose first channel is nonzero; instant-ngp's dynamic
+    masks (``marks_out``) keep the black ones (every colour channel 0; alpha ignored)."""
+    if not marks_out:
+        return values[..., 0] > 0
+    colour = values[..., :1] if values.shape[2] <= 2 else values[..., :3]  # grey (+ alpha) or RGB(A)
+    return (colour == 0).all(axis=2)
 
 
 def mask_values(path: Path) -> np.ndarray:

@@ -10,12 +10,13 @@ training leaves the same pixels out.
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from ngp_warp.data.data_error import DataError
-from ngp_warp.data.images import mask_values
+from ngp_warp.data.images import mask_keeps, mask_values
 
 MASKS_DIR = "masks"
 
@@ -60,7 +61,8 @@ def gather_masks(folder: Path, sizes: dict[str, tuple[int, int]], scene: Path) -
     if missing:
         raise DataError(f"--masks {folder}: no mask for {len(missing)} of {len(sizes)} photos (first: "
                         f"{missing[0]}; looked for {missing[0]}.png and {Path(missing[0]).stem}.png)")
-    shared = [name for name, path in found.items() if list(found.values()).count(path) > 1]
+    uses = Counter(found.values())
+    shared = [name for name, path in found.items() if uses[path] > 1]
     if shared:
         raise DataError(f"--masks {folder}: photos {shared[0]} and {shared[1]} would share the mask "
                         f"{found[shared[0]].name}; name each mask after its whole photo name ({shared[0]}.png)")
@@ -71,7 +73,7 @@ def gather_masks(folder: Path, sizes: dict[str, tuple[int, int]], scene: Path) -
         if values.shape[:2] != sizes[name]:
             raise DataError(f"{path}: mask is {values.shape[1]}x{values.shape[0]} but its photo {name} is "
                             f"{sizes[name][1]}x{sizes[name][0]}")
-        keep = np.where(values[..., 0] > 0, 255, 0).astype(np.uint8)
+        keep = np.where(mask_keeps(values), 255, 0).astype(np.uint8)
         Image.fromarray(keep).save(out / f"{name}.png")
     return out
 
