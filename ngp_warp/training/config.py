@@ -32,6 +32,7 @@ class TrainConfig:
     initial_rays: int = 1024
     max_rays: int = 1 << 18
     lr: float = 1e-2
+    lr_warmup: int = 100                # steps of the learning rate's linear warm-up
     weight_decay: float = 1e-6          # on MLP weights only
     loss: str = "l2"                    # "l2" or "huber"
     seed: int = 0
@@ -94,7 +95,7 @@ class TrainConfig:
             value = getattr(self, name)
             if value not in allowed or type(value) not in (str, int, type(None)):
                 raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {value!r}")
-        check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
+        check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution", "lr_warmup",
                                      "steps_per_diagonal"),
                        positive=("seconds", "lr", "occupancy_threshold", "camera_lr", "near"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight",

@@ -30,6 +30,7 @@ class FieldOptimizer:
     Args:
         field: the field; its parameters are updated in place.
         lr: peak learning rate (see :meth:`learning_rate`).
+        warmup_steps: steps of the learning rate's linear warm-up (≥ 1).
         weight_decay: on the MLP weights only.
         weight_average: the average's decay per step late in training (0: no average).
         lazy_table: the hash table gets its own :class:`LazyAdam`, which also keeps the table's
@@ -44,8 +45,10 @@ class FieldOptimizer:
             :meth:`averaged_weights`.
     """
 
-    def __init__(self, field: NGPField, lr: float, weight_decay: float, weight_average: float, lazy_table: bool):
+    def __init__(self, field: NGPField, lr: float, weight_decay: float, weight_average: float, lazy_table: bool,
+                 warmup_steps: int = 100):
         self.lr = lr
+        self.warmup_steps = warmup_steps
         self.weight_average = weight_average
         table = {"params": list(field.encoding.parameters()), "weight_decay": 0.0}
         mlp = {"params": field.mlp_parameters(), "weight_decay": weight_decay}
@@ -71,9 +74,9 @@ class FieldOptimizer:
         return [self.mlp_adam] if self.table_adam is None else [self.mlp_adam, self.table_adam]
 
     def learning_rate(self, step: int, progress: float) -> float:
-        """Linear warm-up over 100 steps, then ×0.33 at 50 %, 75 % and 90 % of the budget
+        """Linear warm-up over ``warmup_steps`` steps, then ×0.33 at 50 %, 75 % and 90 % of the budget
         (``progress`` in [0, 1])."""
-        warm = min(1.0, 0.01 + step / 100.0)
+        warm = min(1.0, 0.01 + step / self.warmup_steps)
         return self.lr * (warm * 0.33 ** sum(progress >= m for m in (0.5, 0.75, 0.9)))
 
     def average_decay(self, step: int) -> float | None:

@@ -75,7 +75,8 @@ class Trainer:
         self.batch_kept: torch.Tensor | None = None  # [p k] bool: the ray's pixel is one to train on
         self.target_samples = default_target_samples(cfg, self.device.type)
         self.rays = RayCount(cfg.initial_rays, cfg.max_rays, self.target_samples, self.device)
-        self.weights = FieldOptimizer(self.field, cfg.lr, cfg.weight_decay, cfg.weight_average, cfg.lazy_table_adam)
+        self.weights = FieldOptimizer(self.field, cfg.lr, cfg.weight_decay, cfg.weight_average, cfg.lazy_table_adam,
+                                      cfg.lr_warmup)
         self.cameras, self.camera_adam = self._camera_refinement(cfg)
         graphs = cfg.cuda_graph and cfg.prune and self.device.type == "cuda"
         self.training_field = TrainingField(self.field, self.target_samples, graphs)
