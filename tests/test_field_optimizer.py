@@ -1,12 +1,18 @@
 """FieldOptimizer's learning-rate schedule: a linear warm-up of ``warmup_steps``, then steps down
 at 50, 75 and 90 % of the budget."""
 
+import dataclasses
+
 import pytest
 import torch
+
+from data_fixtures import nerf_synthetic
+from ngp_warp.data.loading import load_scene
 
 from ngp_warp.ops.field import FieldConfig, NGPField
 from ngp_warp.training.config import TrainConfig
 from ngp_warp.training.field_optimizer import FieldOptimizer
+from ngp_warp.training.trainer import Trainer
 
 
 def _optimizer(warmup_steps: int) -> FieldOptimizer:
@@ -32,3 +38,15 @@ def test_the_setting_is_checked():
     with pytest.raises(ValueError, match="lr_warmup"):
         TrainConfig(lr_warmup=0).check()
     TrainConfig(lr_warmup=1000).check()
+
+
+@pytest.mark.parametrize("warmup", [100, 1000])
+def test_the_trainer_steps_at_the_warm_up_it_is_given(tmp_path, warmup):
+    nerf_synthetic(tmp_path / "scene", n_train=3, n_test=1, size=(16, 12))
+    cfg = TrainConfig(steps=10_000, target_samples=2048, seed=3, lr_warmup=warmup, weight_average=0.0,
+                      field=dataclasses.replace(FieldConfig(), n_levels=4, log2_hashmap_size=10, hidden=16))
+    trainer = Trainer(load_scene(tmp_path / "scene"), cfg, device="cpu")
+    trainer.train(show_progress=False, stop=(5, None))  # five steps of a long budget: no step-down yet
+    applied = [group["lr"] for opt in trainer.weights.optimizers() for group in opt.param_groups]
+    last = trainer.step_count - 1  # the last update's step
+    assert applied == pytest.approx([1e-2 * (0.01 + last / warmup)] * len(applied))
