@@ -127,9 +127,11 @@ def _noise_photos(folder, n: int, size: int = 96):
         iio.imwrite(folder / f"{i}.png", rng.integers(0, 256, (size, size, 3), dtype=np.uint8))
 
 
-@pytest.mark.parametrize("case", ["missing", "no images", "not a video", "two images", "unmatched", "exists"])
+@pytest.mark.parametrize("case", ["missing", "no images", "not a video", "two images", "unmatched", "exists",
+                                  "mixed sizes", "frames of photos"])
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, case):
     source, scene = tmp_path / "input", tmp_path / "out" / "scene"
+    args = []
     if case == "no images":
         source.mkdir()
         (source / "notes.txt").write_text("no photos here")
@@ -144,12 +146,20 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, case):
         _noise_photos(source, 4)
         scene.mkdir(parents=True)
         (scene / "mine.txt").write_text("keep me")
+    elif case == "mixed sizes":  # one camera for all: an odd size is named
+        _noise_photos(source, 4)
+        iio.imwrite(source / "2.png", np.zeros((40, 48, 3), dtype=np.uint8) + 7)
+    elif case == "frames of photos":
+        _noise_photos(source, 4)
+        args = ["--frames", "3"]
     with pytest.raises(DataError) as err:
-        _cli([str(source), "--out", str(scene), "--quiet"])
+        _cli([str(source), "--out", str(scene), "--quiet", *args])
     assert "\n" not in str(err.value) and str(err.value)
     if case == "exists":
         assert [p.name for p in scene.iterdir()] == ["mine.txt"]
         assert "already exists" in str(err.value)
+    elif case == "mixed sizes":
+        assert str(err.value).startswith(f"{source / '2.png'}: photo is 48x40 but 3 of 4 are ")
     else:
         assert not (tmp_path / "out").exists()  # not even the parent this call created
 

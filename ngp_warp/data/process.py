@@ -27,12 +27,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ngp_warp.data.data_error import DataError
+from ngp_warp.data.process_photos import gather_photos
 from ngp_warp.data.database_rows import DatabaseRows
 from ngp_warp.data.pose_errors import pose_errors  # noqa: F401  (process's callers check poses with it)
 from ngp_warp.data.process_masks import check_masks, gather_masks, name_masks
 
 EXTRA = 'pip install "ngp-warp[process]"'
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 EXHAUSTIVE_MAX = 300  # photo sets up to this size match every pair; larger ones match by name order
 SEQUENTIAL_OVERLAP = 10  # sequential matching: each image against its next 10 (and 2^k-th) neighbours
 MIN_REGISTERED = 3
@@ -55,8 +55,8 @@ class ProcessConfig:
         the two; ``frames`` defaults to 100); ignored for a folder of images.
     matcher: ``auto`` (sequential for a video or more than EXHAUSTIVE_MAX photos, else exhaustive),
         ``exhaustive`` or ``sequential`` (photos in file-name order).
-    camera_model: the COLMAP camera model of every image (one camera when all images have one
-        size). SIMPLE_RADIAL (f, cx, cy, k1) is COLMAP's default; OPENCV's extra freedom settled
+    camera_model: the COLMAP camera model, one camera shared by every image (all of one size).
+        SIMPLE_RADIAL (f, cx, cy, k1) is COLMAP's default; OPENCV's extra freedom settled
         on a wrong focal length (and mirrored poses) for the 256-px views of the test scene.
     device: SIFT on ``auto`` (the GPU when pycolmap has CUDA), ``cpu`` or ``cuda`` (``dense``
         SIFT runs on the CPU: COLMAP's GPU SIFT has no affine shapes).
@@ -129,42 +129,6 @@ def require_pycolmap():
     return pycolmap
 
 
-def _image_sizes(folder: Path) -> dict[str, tuple[int, int]]:
-    """{file name: (height, width)} of the images directly in ``folder``, in name order."""
-    import imageio.v3 as iio
-
-    sizes = {}
-    for path in sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()):
-        try:
-            sizes[path.name] = tuple(iio.improps(path).shape[:2])
-        except Exception as e:  # imageio's readers raise many types for a damaged file
-            raise DataError(f"{path}: not a readable image ({type(e).__name__})") from None
-    return sizes
-
-
-def _gather_images(source: Path, images_dir: Path, config: ProcessConfig) -> tuple[dict, bool]:
-    """Fill ``images_dir`` from ``source`` (a folder of images, copied, or a video, sampled).
-
-    Returns:
-        {name: (height, width)} of the images, and whether ``source`` is a video.
-    """
-    if not source.exists():
-        raise DataError(f"{source}: no such file or folder (expected a folder of images or a video)")
-    images_dir.mkdir()
-    if source.is_dir():
-        sizes = _image_sizes(source)
-        if not sizes:
-            raise DataError(f"{source}: no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
-        for name in sizes:
-            shutil.copy2(source / name, images_dir / name)
-        return sizes, False
-    from ngp_warp.data.video import extract_frames
-
-    frames = 100 if config.frames is None and config.fps is None else config.frames
-    extract_frames(source, images_dir, count=frames, fps=config.fps, show_progress=config.show_progress)
-    return _image_sizes(images_dir), True
-
-
 def _run_stage(label: str, total: int, work, progress, show: bool):
     """Run ``work(cancel_token)`` (a pycolmap call, which releases the GIL) in a thread while a
     progress bar, when ``show``, moves to ``progress`` of ``total``: a callable giving the count
@@ -220,8 +184,6 @@ def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: st
     import pycolmap
 
     database, device, show = work / "database.db", _sift_device(pycolmap, config.device), config.show_progress
-    one_size = len(set(sizes.values())) == 1
-    mode = pycolmap.CameraMode.SINGLE if one_size else pycolmap.CameraMode.PER_IMAGE
     reader = pycolmap.ImageReaderOptions(camera_model=config.camera_model)
     if masks is not None:
         reader.mask_path = str(masks)
@@ -231,7 +193,7 @@ def _features_and_matches(work: Path, images_dir: Path, sizes: dict, matcher: st
         extraction.sift.estimate_affine_shape = extraction.sift.domain_size_pooling = True
     sift_device = pycolmap.Device.cpu if config.sift == "dense" else device
     _run_stage("features", len(sizes), lambda token: pycolmap.extract_features(
-        database, images_dir, image_names=list(sizes), camera_mode=mode, reader_options=reader,
+        database, images_dir, image_names=list(sizes), camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
         extraction_options=extraction, device=sift_device, cancellation_token=token),
         (database, "keypoints"), show)
     n = len(sizes)
@@ -323,7 +285,7 @@ def _build(source: Path, tmp: Path, config: ProcessConfig, report: dict) -> None
     from ngp_warp.data.colmap import colmap_to_transforms, read_colmap_model
 
     clock = time.perf_counter()
-    sizes, is_video = _gather_images(source, tmp / "images", config)
+    sizes, is_video = gather_photos(source, tmp / "images", config.frames, config.fps, config.show_progress)
     if len(sizes) < MIN_REGISTERED:
         raise DataError(f"{source}: {len(sizes)} image(s); structure from motion needs at least {MIN_REGISTERED}")
     masks = None if config.masks is None else gather_masks(Path(config.masks), sizes, tmp)
