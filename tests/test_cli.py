@@ -131,6 +131,28 @@ def test_resume_keeps_the_recorded_downscale(scene, tmp_path):
                                rtol=1e-4, atol=2e-3)
 
 
+def test_resume_refuses_other_settings_and_eval_keeps_the_training_record(scene, tmp_path, capsys):
+    out = tmp_path / "run"
+    common = ["--no-video", *FAST]
+    assert main(["train", str(scene), "--out", str(out), "--steps", "2", "--seed", "3", *common]) == 0
+    assert f"{out / 'normalisation.json'}" in capsys.readouterr().out
+    record = json.loads((out / "normalisation.json").read_text())
+    assert len(record["world_from_scene"]) == 4 and record["scale"] > 0
+    for argv, message in ((["--seed", "4"], "--seed 4 with --resume: "), (["--seed", "0"], "--seed 0 with --resume: "),
+                          (["--target-samples", "2048"], "--target-samples 2048 with --resume: ")):
+        assert main(["train", str(scene), "--out", str(out), "--resume", "--steps", "1", *common, *argv]) == 2
+        err = one_line_error(capsys)
+        assert message in err and err.rstrip().endswith("(a resumed run keeps it)")
+    assert main(["train", str(scene), "--out", str(out), "--resume", "--steps", "1", "--seed", "3", *common]) == 0
+    capsys.readouterr()
+    wall = json.loads((out / "metrics.json").read_text())["wall_seconds"]
+    assert main(["eval", str(out), "--device", "cpu", "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["wall_seconds"] == wall and metrics["steps"] == 3
+    printed = capsys.readouterr().out
+    assert "metrics.json" in printed and "checkpoint.pt" not in printed  # eval writes no checkpoint
+
+
 def test_bad_numbers_and_video_names_are_refused(scene, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["train", str(scene), "--out", str(tmp_path / "o"), "--frames", "0"])

@@ -32,10 +32,11 @@ def _training(sp: argparse.ArgumentParser) -> None:
     from ngp_warp.outputs.camera_path import MAX_FRAMES
 
     budget = sp.add_mutually_exclusive_group()
-    budget.add_argument("--steps", type=positive(int), help="training steps")
-    budget.add_argument("--seconds", type=positive(float), help="training wall-clock budget in seconds")
+    budget.add_argument("--steps", type=positive(int), help="training steps (with --resume: this many more)")
+    budget.add_argument("--seconds", type=positive(float),
+                        help="training wall-clock budget in seconds (with --resume: this many more)")
     sp.add_argument("--downscale", type=positive(int, high=MAX_DOWNSCALE), help="shrink images by this integer factor (default 1)")
-    sp.add_argument("--seed", type=seed_number, default=0)
+    sp.add_argument("--seed", type=seed_number, help="random seed of the training (and of the demo's scene; default 0)")
     sp.add_argument("--target-samples", type=positive(int), help="samples per batch (default 2^18 CUDA, 2^15 CPU)")
     sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="any training setting, e.g. distortion_weight=0 or field.log2_hashmap_size=19 "
@@ -62,7 +63,8 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     t = sub.add_parser("train", help="train on a scene folder, then evaluate and render")
-    t.add_argument("scene", help="NeRF-synthetic folder or folder with an instant-ngp transforms.json")
+    t.add_argument("scene", help="scene folder (NeRF-synthetic, an instant-ngp transforms.json, or a COLMAP "
+                                 "model in sparse/0/ beside images/) or a transforms file")
     t.add_argument("--out", type=folder_name, required=True, help="output folder")
     t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     t.add_argument("--gpus", type=positive(int), default=1, help="data-parallel ranks on this machine, one GPU each (docs/multi-gpu.md)")
@@ -80,13 +82,13 @@ def _parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_demo)
 
     e = sub.add_parser("eval", help="evaluate a trained output folder on its test split")
-    e.add_argument("dir", type=folder_name)
+    e.add_argument("dir", type=folder_name, help="a trained output folder (holding checkpoint.pt)")
     e.add_argument("--scene", help="scene folder, if it moved since training")
     _common(e)
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="render a video along a camera path from a trained output folder")
-    r.add_argument("dir", type=folder_name)
+    r.add_argument("dir", type=folder_name, help="a trained output folder (holding checkpoint.pt)")
     r.add_argument("--video", default="orbit.mp4", help="video path (.mp4, or .gif; relative to DIR)")
     add_path_arguments(r)
     r.add_argument("--scene", help="scene folder, if it moved since training")

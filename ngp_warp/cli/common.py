@@ -105,7 +105,7 @@ def with_settings(cfg, args):
 
 def train_config(args, device: str | None = None):  # device: resolved already, else args.device's
     from ngp_warp.training.config import TrainConfig, cpu_sizes
-    cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed)
+    cfg = TrainConfig(steps=args.steps, seconds=args.seconds, seed=args.seed or 0)
     return with_settings(cpu_sizes(cfg) if (device or resolve_device(args.device)) == "cpu" else cfg, args)  # --set wins
 
 
@@ -207,15 +207,18 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     from ngp_warp.outputs.evaluate import evaluate, write_metrics, write_training_curve
     from ngp_warp.wall_clock import WallClock
     from ngp_warp.training.refined_transforms import write_refined_transforms
+    from ngp_warp.data.loading import write_normalisation
 
     out = folder.path
     ckpt = out / CHECKPOINT
     downscale, probe = args.downscale or 1, None
     if resume:
         trainer, record = load_trainer(ckpt, device=device, scene_path=scene_path)  # the same views
-        if args.downscale not in (None, record["downscale"]):
-            raise UserError(f"--downscale {args.downscale} with --resume: {out} trained at --downscale "
-                            f"{record['downscale']} (a resumed run keeps it)")
+        for flag, given, kept in (("--downscale", args.downscale, record["downscale"]),
+                                  ("--seed", args.seed, trainer.config.seed),
+                                  ("--target-samples", args.target_samples, trainer.target_samples)):
+            if given not in (None, kept):
+                raise UserError(f"{flag} {given} with --resume: {out} trained with {flag} {kept} (a resumed run keeps it)")
         trainer.config.steps, trainer.config.seconds = args.steps, args.seconds
         downscale = record["downscale"]
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)
@@ -243,6 +246,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     def save(writer=None):  # an overwritten run's outputs go just before the first (good) write
         written = save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim, writer=writer)
         write_training_curve(out, trainer.curve)  # beside each checkpoint, so that it survives an interruption
+        write_normalisation(out, trainer.scene)  # the map back to the capture's frame, beside them
         return written
 
     if resume:
@@ -272,7 +276,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         clock.mark("video")
     print(clock.summary(), file=sys.stderr)
     probed = {} if probe is None else {"contraction_probe": dataclasses.asdict(probe)}  # what it saw and chose
-    return write_metrics(out, {**metrics, **probed, "wall_seconds": clock.seconds})
+    return write_metrics(out, {**metrics, **probed, "wall_seconds": clock.seconds})  # TRAINING_KEYS
 
 
 def _train(trainer, save, folder, args, scene_path: Path) -> None:
@@ -297,7 +301,12 @@ def _train(trainer, save, folder, args, scene_path: Path) -> None:
         raise UserError(f"{e}; {kept}") from None
 
 
-def print_metrics(metrics: dict, out: Path) -> None:
+TRAINING_KEYS = ("contraction_probe", "wall_seconds")  # metrics.json's keys from training, not evaluation
+
+
+def print_metrics(metrics: dict, out: Path, trained: bool = True) -> None:
+    """The scores on stdout, then the files written: the evaluation's, and with ``trained`` the
+    training's (checkpoint, training curve, normalisation)."""
     ssim = "n/a (images under 11 px)" if metrics["ssim"] is None else f"{metrics['ssim']:.4f}"
     psnr = "n/a (not finite)" if metrics["psnr"] is None else f"{metrics['psnr']:.2f} dB"
     print(f"{metrics['test_split']}: PSNR {psnr}  SSIM {ssim}  "
@@ -308,8 +317,10 @@ def print_metrics(metrics: dict, out: Path) -> None:
         print(f"  (right halves, each view's {fitted} fitted on its left half; whole images with the nearest "
               f"training view's code: PSNR {metrics['psnr_nearest_code']:.2f} dB, the mean code: "
               f"{metrics['psnr_mean_code']:.2f} dB)")
-    print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/, {out / CHECKPOINT}, "
-          f"{out / TRAINING_CURVE}")
+    from ngp_warp.data.loading import NORMALISATION_FILE
+
+    training = f", {out / CHECKPOINT}, {out / TRAINING_CURVE}, {out / NORMALISATION_FILE}" if trained else ""
+    print(f"wrote {out / 'metrics.json'}, {out / 'renders'}/, {out / 'depth'}/{training}")
 
 
 def positive(kind, low=None, high=None):

@@ -8,6 +8,7 @@ from pathlib import Path
 from ngp_warp.cli.common import (UserError, check_run_apart, no_probe, print_metrics, refuse_probe, resolve_device,
                                  train_and_report, train_config, with_settings, writable_dir)
 
+
 def cmd_train(args) -> None:
     scene = Path(args.scene)
     if args.resume and args.set:
@@ -37,12 +38,13 @@ def cmd_demo(args) -> None:
     if (args.downscale or 1) > demo.pixels:
         raise UserError(f"--downscale {args.downscale}: the {args.scene} scene's images are {demo.pixels}x"
                         f"{demo.pixels} pixels")
-    config = with_settings(demo.config(device, args.steps, args.seconds, args.seed), args)
+    seed = args.seed or 0
+    config = with_settings(demo.config(device, args.steps, args.seconds, seed), args)
     RunFolder(Path(args.out), overwrite=args.overwrite, flags=(None, "--overwrite"))
     out = writable_dir(Path(args.out))
     scene_dir = out / demo.folder
     if not (scene_dir / "transforms_train.json").exists():
         print(f"generating the {args.scene} scene in {scene_dir}", file=sys.stderr)
-        demo.write(scene_dir, seed=args.seed)
+        demo.write(scene_dir, seed=seed)
     metrics = train_and_report(scene_dir, out, args, config=config)
     print_metrics(metrics, out)
