@@ -117,6 +117,8 @@ def test_nerfstudio_camera_path(tmp_path):
     ('{"camera_path": [{"fov": 50}], "render_height": 9}', "not a nerfstudio camera path"),
     ('{"path": [{"R": [0, 0, 0, 0], "T": [0, 0, 0], "fov": 40}]}', "not all 0"),
     ('{"path": [{"R": [0, 0, 0, 1], "T": [0, 0, 0], "fov": 190}]}', "fov"),
+    ('{"camera_type": "equirectangular", "camera_path": [{"fov": 50}]}', "camera_type 'equirectangular': only perspective"),
+    ('{"camera_type": "fisheye", "camera_path": [{"fov": 50}]}', "camera_type 'fisheye': only perspective"),
 ])
 def test_bad_path_files_are_one_line_errors(tmp_path, text, message):
     (tmp_path / "p.json").write_text(text)

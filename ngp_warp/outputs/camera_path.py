@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from ngp_warp.data.data_error import short
 from ngp_warp.data.transforms_json import read_json
 
 NGP_DEFAULT_SCALE = 0.33  # instant-ngp's world → unit-cube map when transforms.json has none
@@ -157,6 +158,9 @@ def nerfstudio_path(meta: dict, where: str) -> CameraPath:
     row-major 4×4, OpenGL axes; ``fov``: vertical degrees), ``render_width``/``render_height``
     and ``fps``. The matrices are taken in the scene's world frame."""
     frames = meta["camera_path"]
+    kind = meta.get("camera_type", "perspective")
+    if kind != "perspective":  # fisheye, equirectangular, omnidirectional, vr180: other ray models
+        raise ValueError(f"{where}: camera_type {short(kind)}: only perspective paths render here")
     if not isinstance(frames, list) or not frames:
         raise ValueError(f"{where}: camera_path must be a non-empty list of cameras")
     try:
