@@ -117,6 +117,21 @@ def test_checkpoint_round_trip_and_resume(tiny_scene, tmp_path, lazy_table_adam)
     assert loaded.step_count == 45 and [row[0] for row in loaded.curve] == [1, 10, 20, 30, 40, 45]
 
 
+def test_an_interrupted_run_keeps_its_pending_readout(tiny_scene, tmp_path, monkeypatch):
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(40), device="cpu")
+    step = trainer.step
+
+    def step_until_interrupted(progress):
+        if trainer.step_count == 25:  # Ctrl-C: step 20's readout is on its way to the host
+            raise KeyboardInterrupt
+        return step(progress)
+
+    monkeypatch.setattr(trainer, "step", step_until_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.train(show_progress=False)
+    assert [row[0] for row in trainer.curve] == [1, 10, 20]  # what the interrupt's checkpoint saves
+
+
 def test_checkpoint_written_behind_holds_the_weights_of_the_call(tiny_scene, tmp_path):
     from concurrent.futures import ThreadPoolExecutor
 

@@ -1,4 +1,5 @@
-"""Per-scene defaults of the march and the field: cone steps, contraction, appearance codes.
+"""Per-scene defaults of the march and the field: cone steps, contraction, appearance codes, the
+learned environment's starting colour.
 
 * Cone steps (instant-ngp's ``calc_dt``): scenes larger than the unit box (``aabb_scale`` > 1,
   i.e. more than one occupancy cascade) and unbounded scenes step by
@@ -211,6 +212,18 @@ def plain_backdrop(images: torch.Tensor, masks: torch.Tensor | None = None) -> b
     median = border.median(0).values
     close = ((border - median).abs() <= _BACKDROP_TOLERANCE).all(-1)
     return float(close.float().mean()) >= _BACKDROP_SHARE
+
+
+@torch.no_grad()
+def start_environment(environment: torch.nn.Linear, images: torch.Tensor, masks: torch.Tensor | None) -> None:
+    """Start the learned environment (:meth:`NGPField.background`) at the mean colour of the
+    training images' outermost pixels, where a capture mostly sees its background. Adam moves
+    the sigmoid's bias by about the learning rate per step, so from grey a white backdrop takes
+    hundreds of steps, while density in front of the cameras learns to paint it in a few (the
+    demo scene as a COLMAP model: 9.7 dB after 300 CPU steps from grey, 16.3 from here, as
+    with the backdrop given); the pixels training ``masks`` leave out do not count."""
+    colour = edge_pixels(images, masks).float().mean(0) / 255.0
+    environment.bias.copy_(torch.logit(colour.clamp(0.02, 0.98)))
 
 
 def with_backdrop_alpha(images: torch.Tensor) -> torch.Tensor:

@@ -31,7 +31,7 @@ from ngp_warp.training.model import RadianceModel
 from ngp_warp.ops.occupancy import OccupancyGrid
 from ngp_warp.ops.ray_loss import ray_loss
 from ngp_warp.outputs.renderer import render_view
-from ngp_warp.training.scene_defaults import edge_pixels, with_backdrop_alpha
+from ngp_warp.training.scene_defaults import start_environment, with_backdrop_alpha
 from ngp_warp.training.train_step import (HostCopy, RayCount, StepPhases, TrainingField, backward, pixels_kept,
                                          rays_kept)
 
@@ -70,7 +70,7 @@ class Trainer:
         # opaque images of contracted scenes: fitted over the field's learned environment (view_background)
         self.black_background = self.model.learns_background and self.train_split.images.shape[-1] == 3
         if self.field.environment is not None:
-            _start_environment(self.field.environment, self.train_split.images, self.train_split.masks)
+            start_environment(self.field.environment, self.train_split.images, self.train_split.masks)
         self.batch_images: torch.Tensor | None = None  # [p k] int64 image per ray of the last batch
         self.batch_kept: torch.Tensor | None = None  # [p k] bool: the ray's pixel is one to train on
         self.target_samples = default_target_samples(cfg, self.device.type)
@@ -262,27 +262,31 @@ class Trainer:
 
         with progress_bar(desc=desc, total=total, unit="step" if count_steps else "s", disable=not show_progress,
                           dynamic_ncols=True) as bar:
-            while True:
-                done_steps = self.step_count - start_step
-                clock = self.train_seconds if self.shared_clock is None else self.shared_clock(done_steps)
-                spent = clock - start_seconds
-                if any(limit is not None and used >= limit for used, limit in
-                       ((done_steps, steps), (spent, seconds), (done_steps, stop_steps), (spent, stop_seconds))):
-                    break
-                progress = max(self.step_count / (start_step + steps) if steps else 0.0,
-                               clock / (start_seconds + seconds) if seconds else 0.0)
-                stats = self.step(progress)
-                if self.step_count % READOUT_EVERY == 0 or self.step_count == 1:
-                    self._show_readout(bar if show_progress else None)  # the last readout's, landed by now
-                    self._start_readout(stats)
-                    if show_progress:
-                        bar.update(done() - bar.n)
-                    if checkpoint is not None and time.monotonic() - last_checkpoint >= checkpoint_every:
-                        self._show_readout(bar if show_progress else None)  # never save a diverged field
-                        checkpoint()
-                        last_checkpoint = time.monotonic()
-                    if until is not None and until():
+            try:
+                while True:
+                    done_steps = self.step_count - start_step
+                    clock = self.train_seconds if self.shared_clock is None else self.shared_clock(done_steps)
+                    spent = clock - start_seconds
+                    if any(limit is not None and used >= limit for used, limit in
+                           ((done_steps, steps), (spent, seconds), (done_steps, stop_steps), (spent, stop_seconds))):
                         break
+                    progress = max(self.step_count / (start_step + steps) if steps else 0.0,
+                                   clock / (start_seconds + seconds) if seconds else 0.0)
+                    stats = self.step(progress)
+                    if self.step_count % READOUT_EVERY == 0 or self.step_count == 1:
+                        self._show_readout(bar if show_progress else None)  # the last readout's, landed by now
+                        self._start_readout(stats)
+                        if show_progress:
+                            bar.update(done() - bar.n)
+                        if checkpoint is not None and time.monotonic() - last_checkpoint >= checkpoint_every:
+                            self._show_readout(bar if show_progress else None)  # never save a diverged field
+                            checkpoint()
+                            last_checkpoint = time.monotonic()
+                        if until is not None and until():
+                            break
+            except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the pending readout joins the curve the caller saves
+                self._show_readout(None)
+                raise
             if self.step_count > start_step:  # the last step's loss, read once the GPU is done
                 if not (self._readout.pending and self._readout_of["step"] == self.step_count):
                     self._show_readout(bar if show_progress else None)  # an earlier step's, still pending
@@ -383,15 +387,3 @@ class Trainer:
 
 class TrainingDiverged(RuntimeError):
     """The loss became NaN or infinite; the message is one line naming the step."""
-
-
-@torch.no_grad()
-def _start_environment(environment: torch.nn.Linear, images: torch.Tensor, masks: torch.Tensor | None) -> None:
-    """Start the learned environment (:meth:`NGPField.background`) at the mean colour of the
-    training images' outermost pixels, where a capture mostly sees its background. Adam moves
-    the sigmoid's bias by about the learning rate per step, so from grey a white backdrop takes
-    hundreds of steps, while density in front of the cameras learns to paint it in a few (the
-    demo scene as a COLMAP model: 9.7 dB after 300 CPU steps from grey, 16.3 from here, as
-    with the backdrop given); the pixels training ``masks`` leave out do not count."""
-    colour = edge_pixels(images, masks).float().mean(0) / 255.0
-    environment.bias.copy_(torch.logit(colour.clamp(0.02, 0.98)))
