@@ -173,10 +173,11 @@ def test_settings_override_a_copy_of_the_config(tiny_scene):
     assert (base.loss, base.seconds, base.prune, base.field.finest_resolution) == ("l2", None, True, None)
     boxes = [apply_overrides(base, [f"aabb_scale={text}"]).aabb_scale for text in ("auto", "none", "8", "3")]
     assert boxes == ["auto", None, 8, 3]
-    with pytest.raises(ValueError, match="aabb_scale must be auto, None or a power of two"):
+    with pytest.raises(ValueError, match="aabb_scale must be auto, none or a power of two"):
         apply_overrides(base, ["aabb_scale=3"]).check()
     assert apply_overrides(cfg, ["field.finest_resolution=none"]).field.finest_resolution is None
-    for bad, message in [("nope=1", "unknown setting"), ("loss", "unknown setting"),
+    for bad, message in [("nope=1", "unknown setting"), ("nope", "unknown setting"), ("loss", "loss has no value"),
+                         ("field.hidden", "field.hidden has no value; write field.hidden=VALUE"),
                          ("field.hidden=x", "an integer"), ("prune=maybe", "true or false")]:
         with pytest.raises(ValueError, match=message):
             apply_overrides(base, [bad])

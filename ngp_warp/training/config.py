@@ -94,7 +94,8 @@ class TrainConfig:
         for name, allowed in choices.items():
             value = getattr(self, name)
             if value not in allowed or type(value) not in (str, int, type(None)):
-                raise ValueError(f"{name} must be one of {', '.join(map(str, allowed))}, got {value!r}")
+                raise ValueError(f"{name} must be one of {', '.join('none' if a is None else str(a) for a in allowed)}, "
+                                 f"got {value!r}")
         check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution", "lr_warmup",
                                      "steps_per_diagonal"),
                        positive=("seconds", "lr", "occupancy_threshold", "camera_lr", "near"),
@@ -116,7 +117,7 @@ class TrainConfig:
             raise ValueError(f"target_samples must be at most {MAX_SAMPLES_PER_CALL} (the samples one kernel call "
                              f"takes), got {self.target_samples}")
         if self.aabb_scale not in ("auto", None, *AABB_SCALES) or type(self.aabb_scale) not in (str, int, type(None)):
-            raise ValueError(f"aabb_scale must be auto, None or a power of two up to {AABB_SCALES[-1]}, "
+            raise ValueError(f"aabb_scale must be auto, none or a power of two up to {AABB_SCALES[-1]}, "
                              f"got {self.aabb_scale!r}")
         if not 0.0 <= self.occupancy_decay < 1.0:
             raise ValueError(f"occupancy_decay must be in [0, 1), got {self.occupancy_decay!r}")
@@ -157,6 +158,8 @@ def apply_overrides(config: TrainConfig, settings: list[str]) -> TrainConfig:
         key, sep, text = item.partition("=")
         target, name = (config.field, key[6:]) if key.startswith("field.") else (config, key)
         names = {f.name for f in dataclasses.fields(target)} - {"field"}
+        if not sep and name in names:
+            raise ValueError(f"{key} has no value; write {key}=VALUE")
         if not sep or name not in names:
             field_names = {"field." + f.name for f in dataclasses.fields(FieldConfig)}
             raise ValueError(f"unknown setting {item!r}; expected key=value with key one of "
