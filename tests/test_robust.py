@@ -58,10 +58,11 @@ def test_atomic_dir_refuses_to_replace_a_file(tmp_path):
     assert (tmp_path / "renders").read_text() == "a file"
 
 
-def test_run_folder_refuses_another_run_and_overwrites_only_at_the_first_write(tmp_path):
+def test_run_folder_refuses_another_run_and_overwrites_only_at_the_first_write(tmp_path, caplog):
     out = tmp_path / "run"
     out.mkdir()
     (out / "checkpoint.pt").write_text("old")
+    (out / "transforms_refined.json").write_text("old")
     (out / "renders").mkdir()
     (out / "notes.txt").write_text("the user's")
     with pytest.raises(RunFolderError, match="holds another run .*--resume.*--overwrite"):
@@ -72,10 +73,13 @@ def test_run_folder_refuses_another_run_and_overwrites_only_at_the_first_write(t
     assert (out / "checkpoint.pt").exists()  # nothing goes before the run writes
     folder.claim()
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    assert caplog.messages == [f"ngp-warp: {out}: replaced the previous run's outputs; other files there are kept, "
+                               f"perhaps made from it: notes.txt"]
     RunFolder(out)  # empty of runs again
     (out / "checkpoint.pt").write_text("mine")
     RunFolder(out, resume=True).claim()
     assert (out / "checkpoint.pt").read_text() == "mine"  # resuming keeps the run
+    assert len(caplog.messages) == 1  # a resumed run's own files are no news
 
 
 def test_run_folder_refuses_outputs_of_the_wrong_kind(tmp_path):
@@ -213,6 +217,6 @@ def test_a_sigterm_during_cli_training_saves_and_exits_143(tiny_scene, tmp_path,
     assert "terminated (SIGTERM) at step" in err and "Traceback" not in err
     state = torch.load(out / "checkpoint.pt", weights_only=False)
     assert state["step"] > 0 and np.isfinite(state["train_seconds"])
-    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt", "training_curve.csv"]
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt", "normalisation.json", "training_curve.csv"]
     steps = [int(line.split(",")[0]) for line in (out / "training_curve.csv").read_text().splitlines()[1:]]
     assert steps == state["curve"][:, 0].int().tolist() and 0 < len(steps) and steps[-1] <= state["step"]

@@ -19,8 +19,7 @@ import torch
 from ngp_warp.atomic import atomic_write_text
 from ngp_warp.data.loading import scene_sources
 from ngp_warp.data.transforms_json import image_path
-
-REFINED_TRANSFORMS = "transforms_refined.json"
+from ngp_warp.training.run_folder import REFINED_TRANSFORMS
 
 
 def refined_transforms(scene_path: str | Path, downscale: int, image_names: list[str],

@@ -13,6 +13,7 @@ checkpoint.
 from __future__ import annotations
 
 import contextlib
+import logging
 import shutil
 import signal
 import threading
@@ -22,9 +23,11 @@ from ngp_warp.atomic import remove_stale_partials
 
 CHECKPOINT = "checkpoint.pt"
 TRAINING_CURVE = "training_curve.csv"
+REFINED_TRANSFORMS = "transforms_refined.json"  # with camera_refinement (ngp_warp.training.refined_transforms)
 RUN_OUTPUTS = (CHECKPOINT, TRAINING_CURVE, "metrics.json", "renders", "depth", "orbit.mp4", "orbit.gif",
-               "normalisation.json")
+               "normalisation.json", REFINED_TRANSFORMS)
 OUTPUT_FOLDERS = ("renders", "depth")
+log = logging.getLogger("ngp_warp.training.run_folder")
 SIGTERM_EXIT = 128 + signal.SIGTERM  # 143, as a shell reports a process ended by SIGTERM
 
 
@@ -78,7 +81,8 @@ class RunFolder:
 
     def claim(self) -> None:
         """Before the run's first write: create the folder, delete the temporary files a killed
-        run left there and, when overwriting, the previous run's outputs."""
+        run left there and, when overwriting, the previous run's outputs, with a warning naming
+        the other files kept there (videos, meshes: perhaps made from the previous run)."""
         if self.claimed:
             return
         self.path.mkdir(parents=True, exist_ok=True)
@@ -89,6 +93,10 @@ class RunFolder:
                 shutil.rmtree(entry)
             else:
                 entry.unlink(missing_ok=True)
+        kept = sorted(p.name for p in self.path.iterdir() if p.is_file()) if self._stale else []
+        if kept:
+            log.warning(f"ngp-warp: {self.path}: replaced the previous run's outputs; other files there are kept, "
+                        f"perhaps made from it: {', '.join(kept[:4])}{' ...' if len(kept) > 4 else ''}")
         self.claimed = True
 
 
