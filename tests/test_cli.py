@@ -16,6 +16,7 @@ from ngp_warp import _wp
 from ngp_warp.cli import main
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
+from ngp_warp.training.checkpoint import read_checkpoint
 
 FAST = ["--device", "cpu", "--quiet", "--target-samples", "4096"]
 
@@ -151,6 +152,19 @@ def test_resume_refuses_other_settings_and_eval_keeps_the_training_record(scene,
     assert metrics["wall_seconds"] == wall and metrics["steps"] == 3
     printed = capsys.readouterr().out
     assert "metrics.json" in printed and "checkpoint.pt" not in printed  # eval writes no checkpoint
+
+
+def test_ctrl_c_in_the_evaluation_keeps_the_checkpoint_and_names_eval(scene, tmp_path, capsys, monkeypatch):
+    from ngp_warp.outputs import evaluate
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluate, "evaluate", interrupted)
+    out = tmp_path / "run"
+    assert main(["train", str(scene), "--out", str(out), "--steps", "2", "--no-video", *FAST]) == 130
+    assert f"the trained checkpoint is kept (evaluate it with ngp-warp eval {out})" in capsys.readouterr().err
+    assert read_checkpoint(out / "checkpoint.pt")["step"] == 2
 
 
 def test_bad_numbers_and_video_names_are_refused(scene, tmp_path, capsys):

@@ -204,9 +204,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     from ngp_warp.training.checkpoint import load_trainer, save_checkpoint
     from ngp_warp.outputs.camera_path import around_cameras
     from ngp_warp.outputs.video_out import render_trainer_video
-    from ngp_warp.outputs.evaluate import evaluate, write_metrics, write_training_curve
+    from ngp_warp.outputs.evaluate import write_metrics, write_training_curve
     from ngp_warp.wall_clock import WallClock
-    from ngp_warp.training.refined_transforms import write_refined_transforms
     from ngp_warp.data.loading import write_normalisation
 
     out = folder.path
@@ -257,14 +256,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     clock.shift(probe_seconds, "start_up", "training")  # the probe trained during the start-up
     _train(trainer, save, folder, args, scene_path)
     clock.mark("training")
-    with ThreadPoolExecutor(1, thread_name_prefix="checkpoint") as writer:  # written while evaluating
-        written = save(writer)
-        if trainer.cameras is not None:
-            refined = write_refined_transforms(trainer, scene_path, downscale, out)
-            print(f"camera refinement: {trainer.cameras.summary()}; refined poses: {refined}", file=sys.stderr)
-        clock.mark("checkpoint")
-        metrics = evaluate(trainer, out, show_progress=not args.quiet)
-        written.result()
+    metrics = _save_and_evaluate(trainer, save, out, scene_path, downscale, clock, args.quiet)
     clock.mark("evaluation")
     if not args.no_video:
         train = scene.train
@@ -277,6 +269,28 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     print(clock.summary(), file=sys.stderr)
     probed = {} if probe is None else {"contraction_probe": dataclasses.asdict(probe)}  # what it saw and chose
     return write_metrics(out, {**metrics, **probed, "wall_seconds": clock.seconds})  # TRAINING_KEYS
+
+
+def _save_and_evaluate(trainer, save, out: Path, scene_path: Path, downscale: int, clock, quiet: bool) -> dict:
+    """The final checkpoint (and refined transforms), written while the test views are scored;
+    returns the metrics. Ctrl-C during the evaluation keeps the checkpoint and says how to score it."""
+    from ngp_warp.outputs.evaluate import evaluate
+    from ngp_warp.training.refined_transforms import write_refined_transforms
+
+    with ThreadPoolExecutor(1, thread_name_prefix="checkpoint") as writer:  # written while evaluating
+        written = save(writer)
+        if trainer.cameras is not None:
+            refined = write_refined_transforms(trainer, scene_path, downscale, out)
+            print(f"camera refinement: {trainer.cameras.summary()}; refined poses: {refined}", file=sys.stderr)
+        clock.mark("checkpoint")
+        try:
+            metrics = evaluate(trainer, out, show_progress=not quiet)
+        except KeyboardInterrupt:
+            print(f"ngp-warp: evaluation stopped; the trained checkpoint is kept (evaluate it with ngp-warp eval "
+                  f"{out})", file=sys.stderr)
+            raise
+        written.result()
+    return metrics
 
 
 def _train(trainer, save, folder, args, scene_path: Path) -> None:
