@@ -212,7 +212,7 @@ def test_video_keeps_the_sharpest_frame_of_each_stretch(tmp_path):
     assert len(V.extract_frames(video, tmp_path, fps=2.0, show_progress=False)) == 2  # 1 s of video
 
 
-def test_frames_of_a_video_fill_the_scene_images(tmp_path, monkeypatch):
+def test_frames_of_a_video_fill_the_scene_images(tmp_path, monkeypatch, caplog):
     video = tmp_path / "clip.mp4"
     rng = np.random.default_rng(2)
     iio.imwrite(video, rng.integers(0, 256, (9, 64, 64, 3), dtype=np.uint8), fps=3, codec="libx264",
@@ -229,6 +229,10 @@ def test_frames_of_a_video_fill_the_scene_images(tmp_path, monkeypatch):
     assert len(seen["sizes"]) == 5 and seen["matcher"] == "sequential" and seen["masks"] is None
     assert set(seen["sizes"].values()) == {(64, 64)}
     assert not (tmp_path / "scene").exists() and _leftovers(tmp_path) == []
+    with pytest.raises(DataError, match="stop here"):  # more frames than the video has: all, and a warning
+        P.process(video, tmp_path / "scene", P.ProcessConfig(frames=20, show_progress=False))
+    assert len(seen["sizes"]) == 9
+    assert caplog.messages == [f"ngp-warp: {video}: the video has 9 frames; all are kept (--frames 20)"]
 
 
 def test_the_ngp_warp_command_reports_bad_input_in_one_line(tmp_path, capsys):

@@ -3,6 +3,7 @@ video's frames."""
 
 from __future__ import annotations
 
+import logging
 import shutil
 from collections import Counter
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 from ngp_warp.data.data_error import DataError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+log = logging.getLogger("ngp_warp.data.process")
 
 
 def image_sizes(folder: Path) -> dict[str, tuple[int, int]]:
@@ -59,6 +61,8 @@ def gather_photos(source: Path, images_dir: Path, frames: int | None, fps: float
         return sizes, False
     from ngp_warp.data.video import extract_frames
 
-    frames = 100 if frames is None and fps is None else frames
-    extract_frames(source, images_dir, count=frames, fps=fps, show_progress=show_progress)
+    count = 100 if frames is None and fps is None else frames
+    kept = extract_frames(source, images_dir, count=count, fps=fps, show_progress=show_progress)
+    if frames is not None and len(kept) < frames:
+        log.warning(f"ngp-warp: {source}: the video has {len(kept)} frames; all are kept (--frames {frames})")
     return image_sizes(images_dir), True
