@@ -217,7 +217,8 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
                                   ("--seed", args.seed, trainer.config.seed),
                                   ("--target-samples", args.target_samples, trainer.target_samples)):
             if given not in (None, kept):
-                raise UserError(f"{flag} {given} with --resume: {out} trained with {flag} {kept} (a resumed run keeps it)")
+                raise UserError(f"{flag} {given} with --resume: {out} trained with {flag} {kept} "
+                                "(a resumed run keeps it)")
         trainer.config.steps, trainer.config.seconds = args.steps, args.seconds
         downscale = record["downscale"]
         print(f"resuming from {ckpt} at step {trainer.step_count}", file=sys.stderr)

@@ -52,7 +52,7 @@ class ProcessConfig:
     """How ``process`` runs.
 
     frames, fps: a video gives this many frames (evenly spread) or this many per second (one of
-        the two; ``frames`` defaults to 100); ignored for a folder of images.
+        the two; ``frames`` defaults to 100); refused for a folder of photos.
     matcher: ``auto`` (sequential for a video or more than EXHAUSTIVE_MAX photos, else exhaustive),
         ``exhaustive`` or ``sequential`` (photos in file-name order).
     camera_model: the COLMAP camera model, one camera shared by every image (all of one size).
@@ -320,7 +320,7 @@ def process(source: str | Path, scene_dir: str | Path, config: ProcessConfig | N
 
     Raises:
         DataError: pycolmap missing, bad input (no such path, no images, a file that is no
-            video, an unreadable image, fewer than 3 images), ``scene_dir`` exists (without
+            video, an unreadable image, photos of more than one size, fewer than 3 images), ``scene_dir`` exists (without
             ``config.overwrite``), fewer than 3 images registered, the model split in parts, or
             masks that do not fit (:func:`~ngp_warp.data.process_masks.check_masks`,
             :func:`~ngp_warp.data.process_masks.gather_masks`). Nothing is left in
