@@ -178,6 +178,17 @@ def test_video_files_mp4_gif_and_depth(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"v{ext}", f"v_depth{ext}", "w.gif"]
 
 
+@pytest.mark.skipif(not video_out.mp4_available(), reason="needs imageio-ffmpeg (the viewer or process extra)")
+def test_an_odd_sized_mp4_repeats_its_last_row_and_column(tmp_path, caplog):
+    frames = np.zeros((3, 25, 31, 3), dtype=np.uint8)
+    frames[:, :, :15] = 200  # left half bright, right half dark: a resample would blur the edge column
+    written = video_out.write_video(frames, tmp_path / "odd.mp4", 10.0)
+    read = iio.imread(written, index=None)
+    assert read.shape == (3, 26, 32, 3) and not caplog.messages  # no writer warning about resizing
+    assert np.abs(read[:, :, 20:].astype(int)).max() < 20 and np.abs(read[:, :, :10].astype(int) - 200).max() < 20
+    assert np.abs(read[:, -1].astype(int) - read[:, -2].astype(int)).max() < 20  # the repeated row
+
+
 def test_camera_path_from_args(tmp_path):
     train = SimpleNamespace(c2w=training_cameras(), intrinsics=torch.tensor([[20.0, 20.0, 8.0, 6.0]]).expand(30, 4),
                             width=16, height=12)

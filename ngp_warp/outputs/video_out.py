@@ -39,9 +39,11 @@ def write_video(frames: np.ndarray, path: str | Path, fps: float) -> Path:
     with atomic_file(path) as tmp:
         if path.suffix.lower() == ".gif":
             iio.imwrite(tmp, frames, extension=".gif", duration=1000.0 / fps, loop=0)
-        else:  # the temporary name has no .mp4 ending: name the format; macro_block_size 2: odd
-            # sizes grow by one pixel instead of to a multiple of 16
-            iio.imwrite(tmp, frames, extension=".mp4", fps=fps, macro_block_size=2, output_params=["-f", "mp4"])
+        else:  # the temporary name has no .mp4 ending: name the format. H.264 (yuv420p) takes even
+            # sizes: an odd side gets its last row or column repeated (not a resample)
+            even = ((0, 0), (0, frames.shape[1] % 2), (0, frames.shape[2] % 2), (0, 0))
+            iio.imwrite(tmp, np.pad(frames, even, mode="edge"), extension=".mp4", fps=fps, macro_block_size=2,
+                        output_params=["-f", "mp4"])
         if tmp.stat().st_size == 0:  # ffmpeg reports some failures on stderr only
             raise OSError(f"{path}: the video writer wrote nothing")
     return path
