@@ -136,6 +136,26 @@ def test_validation_is_one_clear_error():
     assert C.contract(torch.empty(0, 3)).shape == (0, 3)
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_points_of_any_strides(kind):
+    p = _points(20)
+    for strided in (p.t().contiguous().t(), torch.cat([p[:, :1], p], 1)[:, 1:]):  # column-major, an offset view
+        assert torch.equal(C.contract(strided, kind), C.contract(p, kind))
+        y = C.contract(p, kind)
+        assert torch.equal(C.uncontract(y.t().contiguous().t(), kind), C.uncontract(y, kind))
+
+
+def test_a_contracted_field_refuses_positions_that_need_a_gradient():
+    from ngp_warp.ops.field import FieldConfig, NGPField
+
+    field = NGPField(torch.tensor([-1.0, -1, -1, 1, 1, 1]), FieldConfig(n_levels=2, log2_hashmap_size=8), contraction="l2")
+    x, d = torch.rand(5, 3, requires_grad=True), torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+    with pytest.raises(ValueError, match="requires grad, but contraction has no backward"):
+        field(x, d)
+    sigma, rgb = field(x.detach(), d)
+    assert sigma.shape == (5,) and rgb.shape == (5, 3)
+
+
 @pytest.mark.cuda
 @pytest.mark.parametrize("kind", KINDS)
 def test_cuda_matches_cpu(kind):

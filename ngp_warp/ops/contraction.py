@@ -83,7 +83,7 @@ def contract(x: torch.Tensor, kind: str = "l2", aabb: torch.Tensor | None = None
     """
     _check_points("x", x)
     flag, box = _flag(kind), _inner_box(aabb, x.device, check_box)
-    out = torch.empty_like(x)
+    out = torch.empty(x.shape, dtype=x.dtype, device=x.device)  # contiguous whatever x's strides
     _wp.launch(K.contract_points, x.shape[0], [x.contiguous(), box, flag, out], _wp.device_of(x))
     return out
 
@@ -103,7 +103,7 @@ def uncontract(y: torch.Tensor, kind: str = "l2", aabb: torch.Tensor | None = No
     """
     _check_points("y", y)
     flag, box = _flag(kind), _inner_box(aabb, y.device, check_box)
-    out = torch.empty_like(y)
+    out = torch.empty(y.shape, dtype=y.dtype, device=y.device)  # contiguous whatever y's strides
     _wp.launch(K.uncontract_points, y.shape[0], [y.contiguous(), box, flag, out], _wp.device_of(y))
     return out
 

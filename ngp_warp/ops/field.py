@@ -238,10 +238,11 @@ class NGPField(nn.Module):
             return torch.sigmoid(self.environment(spherical_harmonics_deg4(directions)))
 
     def _grid_points(self, positions: torch.Tensor) -> torch.Tensor:
-        """World positions [N, 3] → the hash grid's coordinates [N, 3] float32: themselves, or C(x)."""
+        """World positions [N, 3] → the hash grid's coordinates [N, 3] float32: themselves, or C(x)
+        (which has no backward: positions that require grad are refused, as :func:`contract` does)."""
         if self.contraction is None:
             return positions
-        return contract(positions.detach().float().contiguous(), self.contraction, self.aabb, check_box=False)
+        return contract(positions.float().contiguous(), self.contraction, self.aabb, check_box=False)
 
     def _unit(self, grid_points: torch.Tensor) -> torch.Tensor:
         """Grid coordinates [N, 3] mapped from the (contracted) box to [0, 1]^3, contiguous (the
