@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import bench_captures  # noqa: E402
 from capture_scenes import HELD_OUT_EVERY, ray_directions, synthetic_views  # noqa: E402
 from ngp_warp.data.scene_unbounded import environment_colours  # noqa: E402
-from ngp_warp.ops.field import spherical_harmonics_deg4  # noqa: E402
+from ngp_warp.ops.spherical_harmonics import spherical_harmonics_deg4  # noqa: E402
 
 
 def fit_environment(directions: torch.Tensor, colours: torch.Tensor, steps: int = 3000) -> torch.Tensor:

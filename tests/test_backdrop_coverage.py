@@ -5,7 +5,7 @@ import math
 
 import torch
 
-from ngp_warp.ops.field import spherical_harmonics_deg4
+from ngp_warp.ops.spherical_harmonics import spherical_harmonics_deg4
 
 from benchmark_scripts import load_benchmark
 

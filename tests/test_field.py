@@ -3,25 +3,7 @@ import math
 import pytest
 import torch
 
-from ngp_warp._reference import field as field_ref
-from ngp_warp.ops.field import FieldConfig, NGPField, density_from_log, spherical_harmonics_deg4, trunc_exp
-
-
-def test_spherical_harmonics_are_orthonormal():
-    # Monte Carlo estimate of ∫ Y_i Y_j dω over the sphere = δ_ij.
-    g = torch.Generator().manual_seed(1)
-    d = torch.randn(400_000, 3, generator=g, dtype=torch.float64)
-    d = d / d.norm(dim=-1, keepdim=True)
-    y = field_ref.spherical_harmonics_deg4(d)
-    gram = 4.0 * math.pi * (y.T @ y) / d.shape[0]
-    assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=0.02)
-
-
-def test_spherical_harmonics_kernel_matches_reference():
-    d = torch.nn.functional.normalize(torch.randn(5000, 3, dtype=torch.float64), dim=-1)
-    got = spherical_harmonics_deg4(d.float())
-    assert got.dtype == torch.float32 and got.shape == (5000, 16)
-    torch.testing.assert_close(got.double(), field_ref.spherical_harmonics_deg4(d), rtol=1e-5, atol=1e-6)
+from ngp_warp.ops.field import FieldConfig, NGPField, density_from_log, trunc_exp
 
 
 def test_trunc_exp_gradient_is_clamped():

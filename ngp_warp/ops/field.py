@@ -34,6 +34,7 @@ from ngp_warp._checks import check_aabb_values, check_numbers
 from ngp_warp.ops.contraction import KINDS, contract
 from ngp_warp.ops.gather import embedding_rows
 from ngp_warp.ops.hashgrid import HashGridEncoding
+from ngp_warp.ops.spherical_harmonics import spherical_harmonics_deg4
 from ngp_warp.kernels import field as K
 
 
@@ -101,22 +102,6 @@ class _TruncExp(torch.autograd.Function):
 def trunc_exp(x: torch.Tensor) -> torch.Tensor:
     """Truncated exponential (instant-ngp's density activation)."""
     return _TruncExp.apply(x)
-
-
-def spherical_harmonics_deg4(d: torch.Tensor) -> torch.Tensor:
-    """Real spherical harmonics of degree 4 (bands 0..3, 16 values) of unit directions, in Warp.
-
-    d: [N, 3] float32 unit vectors (CPU or CUDA). Returns [N, 16] float32 with tiny-cuda-nn's
-    ordering and signs. Directions get no gradient (they come from cameras).
-    """
-    if d.ndim != 2 or d.shape[1] != 3:
-        raise ValueError(f"directions must be [N, 3], got {tuple(d.shape)}")
-    d = d.detach().float().contiguous()
-    out = torch.empty(d.shape[0], 16, device=d.device, dtype=torch.float32)
-    device = _wp.device_of(d)
-    _wp.launch(K.sh_deg4, 4 * d.shape[0], [_wp.to_wp(d, dtype=wp.vec3), _wp.to_wp(out.view(-1, 4), dtype=wp.vec4)],
-               device)
-    return out
 
 
 def density_from_log(log_sigma: torch.Tensor, positions: torch.Tensor, aabb: torch.Tensor) -> torch.Tensor:
