@@ -148,7 +148,8 @@ def test_points_of_any_strides(kind):
 def test_a_contracted_field_refuses_positions_that_need_a_gradient():
     from ngp_warp.ops.field import FieldConfig, NGPField
 
-    field = NGPField(torch.tensor([-1.0, -1, -1, 1, 1, 1]), FieldConfig(n_levels=2, log2_hashmap_size=8), contraction="l2")
+    box = torch.tensor([-1.0, -1, -1, 1, 1, 1])
+    field = NGPField(box, FieldConfig(n_levels=2, log2_hashmap_size=8), contraction="l2")
     x, d = torch.rand(5, 3, requires_grad=True), torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
     with pytest.raises(ValueError, match="requires grad, but contraction has no backward"):
         field(x, d)

@@ -320,11 +320,12 @@ def process(source: str | Path, scene_dir: str | Path, config: ProcessConfig | N
 
     Raises:
         DataError: pycolmap missing, bad input (no such path, no images, a file that is no
-            video, an unreadable image, photos of more than one size, fewer than 3 images), ``scene_dir`` exists (without
-            ``config.overwrite``), fewer than 3 images registered, the model split in parts, or
-            masks that do not fit (:func:`~ngp_warp.data.process_masks.check_masks`,
-            :func:`~ngp_warp.data.process_masks.gather_masks`). Nothing is left in
-            ``scene_dir``'s place then.
+            video, an unreadable image, photos of more than one size, fewer than 3 images),
+            ``scene_dir`` exists (without ``config.overwrite``), fewer than 3 images registered,
+            the model split in parts, or masks that do not fit
+            (:func:`~ngp_warp.data.process_masks.check_masks`,
+            :func:`~ngp_warp.data.process_masks.gather_masks`). Nothing is left in ``scene_dir``'s
+            place then.
     """
     from ngp_warp.atomic import atomic_dir
 

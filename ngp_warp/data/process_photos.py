@@ -11,7 +11,7 @@ from pathlib import Path
 from ngp_warp.data.data_error import DataError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-log = logging.getLogger("ngp_warp.data.process")
+log = logging.getLogger("ngp_warp.data.process_photos")
 
 
 def image_sizes(folder: Path) -> dict[str, tuple[int, int]]:

@@ -94,10 +94,10 @@ class TrainConfig:
         for name, allowed in choices.items():
             value = getattr(self, name)
             if value not in allowed or type(value) not in (str, int, type(None)):
-                raise ValueError(f"{name} must be one of {', '.join('none' if a is None else str(a) for a in allowed)}, "
-                                 f"got {value!r}")
-        check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution", "lr_warmup",
-                                     "steps_per_diagonal"),
+                shown = ", ".join("none" if a is None else str(a) for a in allowed)  # as --set takes them
+                raise ValueError(f"{name} must be one of {shown}, got {value!r}")
+        check_numbers(self, counts=("steps", "target_samples", "initial_rays", "max_rays", "grid_resolution",
+                                     "lr_warmup", "steps_per_diagonal"),
                        positive=("seconds", "lr", "occupancy_threshold", "camera_lr", "near"),
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight",
                                      "near_gradient_distance"),
