@@ -10,6 +10,8 @@ from ngp_warp._reference import spherical_harmonics as twin
 from ngp_warp.ops.field import FieldConfig, NGPField
 from ngp_warp.ops.spherical_harmonics import spherical_harmonics_deg4
 
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)]
+
 
 def test_spherical_harmonics_are_orthonormal():
     # Monte Carlo estimate of ∫ Y_i Y_j dω over the sphere = δ_ij.
@@ -21,23 +23,25 @@ def test_spherical_harmonics_are_orthonormal():
     assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=0.02)
 
 
-def test_spherical_harmonics_kernel_matches_reference():
+@pytest.mark.parametrize("device", DEVICES)
+def test_spherical_harmonics_kernel_matches_reference(device):
     d = torch.nn.functional.normalize(torch.randn(5000, 3, dtype=torch.float64), dim=-1)
-    got = spherical_harmonics_deg4(d.float())
-    assert got.dtype == torch.float32 and got.shape == (5000, 16)
-    torch.testing.assert_close(got.double(), twin.spherical_harmonics_deg4(d), rtol=1e-5, atol=1e-6)
+    got = spherical_harmonics_deg4(d.float().to(device))
+    assert got.dtype == torch.float32 and got.shape == (5000, 16) and got.device.type == device
+    torch.testing.assert_close(got.cpu().double(), twin.spherical_harmonics_deg4(d), rtol=1e-5, atol=1e-6)
 
 
-def test_the_gradient_matches_the_twins():
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_gradient_matches_the_twins(device):
     g = torch.Generator().manual_seed(3)
     d = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g, dtype=torch.float64), dim=-1)
     weights = torch.randn(3000, 16, generator=g, dtype=torch.float64)
-    d32 = d.float().t().contiguous().t().requires_grad_()  # column-major: any strides
-    (spherical_harmonics_deg4(d32) * weights.float()).sum().backward()
+    d32 = d.float().to(device).t().contiguous().t().requires_grad_()  # column-major: any strides
+    (spherical_harmonics_deg4(d32) * weights.float().to(device)).sum().backward()
     d64 = d.clone().requires_grad_()
     (twin.spherical_harmonics_deg4(d64) * weights).sum().backward()
     assert d64.grad.abs().mean() > 0.5
-    torch.testing.assert_close(d32.grad.double(), d64.grad, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(d32.grad.cpu().double(), d64.grad, rtol=1e-5, atol=1e-5)
 
 
 def test_float64_directions_get_a_float64_gradient_and_no_second_derivative():
