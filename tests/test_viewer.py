@@ -14,7 +14,7 @@ import torch
 
 from browser import CHROMIUM, DevTools, wait_for
 from ngp_warp.outputs.camera_path import matrix_from_quat
-from ngp_warp.training.checkpoint import save_checkpoint
+from ngp_warp.training.checkpoint import load_trainer, save_checkpoint
 from ngp_warp.cli import main
 from ngp_warp.training.config import TrainConfig
 from ngp_warp.data.loading import load_scene
@@ -98,6 +98,61 @@ def test_a_scene_folder_is_trained_live(scene_dir):
     assert live and trainer.step_count == 0 and trainer.config.budget() == (7, None)
     assert trainer.scene.train.width == 16 and trainer.config.grid_resolution == 32
     assert trainer.config.field.log2_hashmap_size == 16  # the CPU's table (config.cpu_sizes)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def stopped_after(ticks: int):
+    """A Viewer.serve that ticks ``ticks`` times, then stops as Ctrl-C does."""
+    def serve(viewer, stop=None):
+        for _ in range(ticks):
+            viewer.tick()
+        raise KeyboardInterrupt
+    return serve
+
+
+LIVE = ["--device", "cpu", "--target-samples", "4096", "--set", "grid_resolution=32", "--steps", "100"]
+
+
+def test_a_live_run_is_kept_in_out_when_the_viewer_stops(scene_dir, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(Viewer, "serve", stopped_after(6))
+    out = tmp_path / "live"
+    assert main(["view", str(scene_dir), "--port", str(free_port()), "--out", str(out), *LIVE]) == 130
+    err = capsys.readouterr().err
+    assert f"saved at step 6 to {out}" in err and "not kept" not in err
+    trainer, record = load_trainer(out / "checkpoint.pt", device="cpu")
+    assert trainer.step_count == 6 and record["downscale"] == 1
+    assert (out / "normalisation.json").is_file() and (out / "training_curve.csv").is_file()
+    # the folder now holds a run: another live run needs --overwrite, and says so before training
+    assert main(["view", str(scene_dir), "--port", str(free_port()), "--out", str(out), *LIVE]) == 2
+    assert "holds another run" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert main(["view", str(scene_dir), "--port", str(free_port()), "--out", str(out), "--overwrite", *LIVE]) == 130
+    assert load_trainer(out / "checkpoint.pt", device="cpu")[0].step_count == 6
+    # a trained run is viewed, not trained: live training's flags are refused in one line
+    assert main(["view", str(out), "--port", str(free_port()), "--device", "cpu", "--out", str(tmp_path / "x"),
+                 "--seed", "3"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == \
+        f"ngp-warp: error: --seed, --out: settings of live training, but {out} is a trained run " \
+        f"(give a scene folder to train one live)"
+
+
+def test_a_live_run_without_out_says_it_is_not_kept(scene_dir, monkeypatch, capsys):
+    monkeypatch.setattr(Viewer, "serve", stopped_after(2))
+    assert main(["view", str(scene_dir), "--port", str(free_port()), *LIVE]) == 130
+    assert "training live, not kept: --out DIR keeps it" in capsys.readouterr().err
+
+
+def test_out_that_cannot_take_a_live_run_is_one_line(scene_dir, tmp_path, capsys):
+    port = str(free_port())
+    assert main(["view", str(scene_dir), "--port", port, "--out", str(scene_dir / "run"), *LIVE]) == 2
+    assert "would be written into the dataset" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert main(["view", str(scene_dir), "--port", port, "--overwrite", *LIVE]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == \
+        "ngp-warp: error: --overwrite: replaces the run --out holds, but no --out is given"
 
 
 def test_a_setting_that_does_not_suit_the_scene_is_one_line(scene_dir, capsys):

@@ -201,12 +201,11 @@ def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
 
 
 def _run(scene, scene_path: Path, folder, args, device: str, config, resume: bool) -> dict:
-    from ngp_warp.training.checkpoint import load_trainer, save_checkpoint
+    from ngp_warp.training.checkpoint import load_trainer
     from ngp_warp.outputs.camera_path import around_cameras
     from ngp_warp.outputs.video_out import render_trainer_video
-    from ngp_warp.outputs.evaluate import write_metrics, write_training_curve
+    from ngp_warp.outputs.evaluate import write_metrics
     from ngp_warp.wall_clock import WallClock
-    from ngp_warp.data.loading import write_normalisation
 
     out = folder.path
     ckpt = out / CHECKPOINT
@@ -243,12 +242,7 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
         print(f"no test split: evaluating on {len(scene.test.names)} frames held out of training",
               file=sys.stderr)
 
-    def save(writer=None):  # an overwritten run's outputs go just before the first (good) write
-        written = save_checkpoint(trainer, ckpt, scene_path, downscale, before_write=folder.claim, writer=writer)
-        write_training_curve(out, trainer.curve)  # beside each checkpoint, so that it survives an interruption
-        write_normalisation(out, trainer.scene)  # the map back to the capture's frame, beside them
-        return written
-
+    save = run_saver(trainer, folder, scene_path, downscale)
     if resume:
         _check_video(args, scene)
     clock = WallClock(getattr(args, "started", time.perf_counter()))
@@ -270,6 +264,24 @@ def _run(scene, scene_path: Path, folder, args, device: str, config, resume: boo
     print(clock.summary(), file=sys.stderr)
     probed = {} if probe is None else {"contraction_probe": dataclasses.asdict(probe)}  # what it saw and chose
     return write_metrics(out, {**metrics, **probed, "wall_seconds": clock.seconds})  # TRAINING_KEYS
+
+
+def run_saver(trainer, folder, scene_path: Path, downscale: int):
+    """save(writer=None): the run's checkpoint, training curve and normalisation into ``folder``
+    (a :class:`ngp_warp.training.run_folder.RunFolder`, claimed just before the first good write,
+    so that an overwritten run's outputs go only then); with ``writer`` the checkpoint is written
+    on that thread and its future returned."""
+    from ngp_warp.data.loading import write_normalisation
+    from ngp_warp.outputs.evaluate import write_training_curve
+    from ngp_warp.training.checkpoint import save_checkpoint
+
+    def save(writer=None):
+        written = save_checkpoint(trainer, folder.path / CHECKPOINT, scene_path, downscale, before_write=folder.claim,
+                                  writer=writer)
+        write_training_curve(folder.path, trainer.curve)  # beside each checkpoint: it survives an interruption
+        write_normalisation(folder.path, trainer.scene)  # the map back to the capture's frame, beside them
+        return written
+    return save
 
 
 def _save_and_evaluate(trainer, save, out: Path, scene_path: Path, downscale: int, clock, quiet: bool) -> dict:

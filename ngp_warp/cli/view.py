@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from ngp_warp.outputs.camera_path import MAX_SIDE
-from ngp_warp.cli.common import (CHECKPOINT, MAX_DOWNSCALE, UserError, new_trainer, positive, refuse_probe, resolve_device,
-                                 seed_number, train_config)
+from ngp_warp.cli.common import (CHECKPOINT, MAX_DOWNSCALE, UserError, check_run_apart, new_trainer, positive,
+                                 refuse_probe, resolve_device, run_saver, seed_number, train_config)
 
 
 def add_view_parser(subparsers):
@@ -30,6 +30,9 @@ def add_view_parser(subparsers):
     v.add_argument("--seed", type=seed_number, default=0)
     v.add_argument("--target-samples", type=positive(int), help="live training: samples per batch")
     v.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="live training: any setting")
+    v.add_argument("--out", help="live training: keep the run in this folder when the viewer stops (Ctrl-C): "
+                                 "its checkpoint, as ngp-warp train saves it (then ngp-warp eval, view, render it)")
+    v.add_argument("--overwrite", action="store_true", help="live training: replace the run that --out holds")
     v.set_defaults(func=cmd_view)
     return v
 
@@ -41,7 +44,8 @@ def load_target(args, device: str):
 
     target = Path(args.target)
     if (target / CHECKPOINT).is_file():
-        given = {"--steps": None, "--seconds": None, "--downscale": 1, "--seed": 0, "--target-samples": None, "--set": []}
+        given = {"--steps": None, "--seconds": None, "--downscale": 1, "--seed": 0, "--target-samples": None, "--set": [],
+                 "--out": None, "--overwrite": False}
         live_only = [flag for flag, unset in given.items() if getattr(args, flag[2:].replace("-", "_"), unset) != unset]
         if live_only:
             raise UserError(f"{', '.join(live_only)}: settings of live training, but {target} is a trained run "
@@ -52,6 +56,40 @@ def load_target(args, device: str):
     config = train_config(args, device)  # bad settings before the scene is read
     refuse_probe(config, "by view (it trains live)")
     return new_trainer(load_scene(target, downscale=args.downscale), config, device), True
+
+
+def live_run_folder(args):
+    """The :class:`RunFolder` of ``--out`` for a scene trained live (None without ``--out``);
+    one-line errors, before anything trains, where the folder cannot take the run."""
+    from ngp_warp.training.run_folder import RunFolder, RunFolderError
+
+    if args.out is None:
+        if args.overwrite:
+            raise UserError("--overwrite: replaces the run --out holds, but no --out is given")
+        return None
+    out = Path(args.out)
+    check_run_apart(out, Path(args.target))
+    try:
+        return RunFolder(out, overwrite=args.overwrite, flags=(None, "--overwrite"))
+    except RunFolderError as e:
+        raise UserError(str(e)) from None
+
+
+def keep_live_run(trainer, folder, args) -> None:
+    """Save the live run into ``folder`` (a :class:`RunFolder`), saying where, or why not."""
+    from ngp_warp.training.checkpoint import NonFiniteWeights
+
+    if trainer.step_count == 0:
+        print(f"ngp-warp view: nothing trained; nothing written to {folder.path}", file=sys.stderr)
+        return
+    try:
+        run_saver(trainer, folder, Path(args.target), args.downscale)()
+    except NonFiniteWeights:
+        print(f"ngp-warp view: the live run diverged (weights not finite); nothing written to {folder.path}",
+              file=sys.stderr)
+        return
+    print(f"ngp-warp view: the live run saved at step {trainer.step_count} to {folder.path} "
+          f"(score it with ngp-warp eval {folder.path})", file=sys.stderr)
 
 
 def port_in_use(host: str, port: int) -> UserError:
@@ -85,6 +123,7 @@ def cmd_view(args) -> None:
 
     check_listen_address(args.host, args.port)  # before the run is loaded
     device = resolve_device(args.device)
+    folder = None if (Path(args.target) / CHECKPOINT).is_file() else live_run_folder(args)  # before the scene loads
     trainer, live = load_target(args, device)
     resolution = args.resolution or (800 if trainer.device.type == "cuda" else 200)
     moving = args.moving_resolution or max(16, resolution // 4)
@@ -95,10 +134,13 @@ def cmd_view(args) -> None:
     if viewer.server.get_port() != args.port:  # taken since the check: the server moved to another
         viewer.close()
         raise port_in_use(args.host, args.port)
-    what = "training live" if live else f"step {trainer.step_count}"
+    what = f"step {trainer.step_count}" if not live else "training live" if folder else \
+        "training live, not kept: --out DIR keeps it"
     print(f"ngp-warp view: {args.target} ({what}) at {viewer.url}  (Ctrl-C to stop)", file=sys.stderr)
     print(viewer.url, flush=True)
     try:
         viewer.serve()
     finally:
         viewer.close()
+        if folder is not None:
+            keep_live_run(trainer, folder, args)
