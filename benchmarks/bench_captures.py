@@ -3,7 +3,7 @@ the command a user runs (``ngp-warp train SCENE --seconds S``, defaults), one ta
 
     python benchmarks/bench_captures.py --lego ../shared/data/lego_half --fox ../shared/data/fox \
         --seconds 60 [--scenes demo-colmap,unbounded-colmap] [--runs 3] [--compare contraction=none] \
-        [--downscale 4] [--device cpu] [--seed 0]
+        [--downscale 4] [--device cpu] [--seed 0] [--gpus 2]
 
 Scenes (every 8th frame held out, sorted by name; ``capture_scenes.py`` writes the forms):
 
@@ -25,8 +25,11 @@ PSNR with a code fitted on the left half (codes on), SSIM (as metrics.json: righ
 codes are on), steps, ms per step, trained samples per ray, the contraction the run used.
 ``OUT/captures.png`` shows each row's first held-out view: ground truth, render, depth.
 ``--compare KEY=VALUE`` adds a row per scene trained with that setting, and a second table: its
-whole-image PSNR minus the defaults' trained with the same seeds (mean ± sd over the pairs). Writes
-``OUT/captures.json`` with every run.
+whole-image PSNR minus the defaults' trained with the same seeds (mean ± sd over the pairs). A
+third table gives each held-out view's PSNR (right half with codes on), the mean over the runs,
+where a scene has at most 12 of them (fox's floaters show in one view). ``--gpus N`` trains N
+runs at once, one per CUDA GPU (two processes on one host slow each other's host-bound steps by
+about 5–10 %). Writes ``OUT/captures.json`` with every run.
 """
 
 from __future__ import annotations
@@ -35,9 +38,12 @@ import argparse
 import collections
 import json
 import math
+import os
+import queue
 import statistics
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -107,20 +113,62 @@ def scene_folder(name: str, work: Path, args) -> Path:
     return folder
 
 
-def train(scene: Path, out: Path, args, seed: int, settings: list[str]) -> dict:
-    """One ``ngp-warp train`` run; its metrics.json with the run's contraction added."""
+def train(scene: Path, out: Path, args, seed: int, settings: list[str], gpu: int | None = None) -> dict:
+    """One ``ngp-warp train`` run (on CUDA GPU ``gpu`` alone where given); its metrics.json with
+    the run's contraction added."""
     command = ["ngp-warp", "train", str(scene), "--out", str(out), "--seconds", str(args.seconds), "--seed", str(seed),
                "--no-video", "--quiet", "--overwrite", "--device", args.device, "--downscale", str(args.downscale)]
     for setting in settings:
         command += ["--set", setting]
-    done = subprocess.run(command, capture_output=True, text=True)
+    env = None if gpu is None else {**os.environ, "CUDA_VISIBLE_DEVICES": str(gpu)}
+    done = subprocess.run(command, capture_output=True, text=True, env=env)
     if done.returncode != 0:
         print(done.stdout + done.stderr, file=sys.stderr)
         return {"error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
     metrics = json.loads((out / "metrics.json").read_text())
     config = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)["train_config"]
     metrics["contraction"] = config["contraction"] or "none"
+    print(f"{out.name}: {whole_psnr(metrics):.2f} dB, {metrics['steps']} steps", file=sys.stderr, flush=True)
     return metrics
+
+
+def train_all(jobs: list[tuple[Path, Path, int, list[str]]], args) -> list[dict]:
+    """:func:`train` each (scene, out, seed, settings) of ``jobs``, ``args.gpus`` at a time, each
+    on a GPU of its own; the metrics in the order of ``jobs``."""
+    if args.gpus <= 1:
+        return [train(*job[:2], args, *job[2:]) for job in jobs]
+    free = queue.SimpleQueue()
+    for gpu in range(args.gpus):
+        free.put(gpu)
+
+    def on_a_free_gpu(job):
+        gpu = free.get()
+        try:
+            return train(*job[:2], args, *job[2:], gpu=gpu)
+        finally:
+            free.put(gpu)
+
+    with ThreadPoolExecutor(args.gpus) as pool:
+        return list(pool.map(on_a_free_gpu, jobs))
+
+
+def view_table(rows: list[tuple[str, str, list[dict]]], most: int = 12) -> str:
+    """Each held-out view's PSNR (metrics.json's ``per_image``), the mean over a row's runs, for
+    the rows whose scene holds at most ``most`` views; "" when none does."""
+    lines = []
+    for name, setting, runs in rows:
+        ok = [r for r in runs if "per_image" in r]
+        if not ok or len(ok[0]["per_image"]) > most:
+            continue
+        views = [Path(v["image"]).stem for v in ok[0]["per_image"]]
+        if not lines:
+            lines = ["| scene | setting | runs | held-out views: PSNR (mean over the runs; lowest run) |", "|---|---|---:|---|"]
+        cells = []
+        for i, view in enumerate(views):
+            scores = [r["per_image"][i]["psnr"] for r in ok]
+            cells.append(f"{view} {statistics.fmean(scores):.2f}" + (f" ({min(scores):.2f})" if len(ok) > 1 else ""))
+        lines.append(f"| {name} | {setting} | {len(ok)} | {', '.join(cells)} |")
+    return "\n".join(lines)
 
 
 def picture(run: Path, metrics: dict, height: int = 128) -> np.ndarray | None:
@@ -219,32 +267,39 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="the first run's seed")
     parser.add_argument("--compare", action="append", default=[], help="KEY=VALUE[,KEY=VALUE]: also train each scene with these")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--gpus", type=int, default=1, help="CUDA: runs at once, one per GPU (0 .. N-1)")
     parser.add_argument("--out", type=Path, default=Path("bench_captures"))
     args = parser.parse_args()
     names = [n for n in args.scenes.split(",") if n]
     unknown = [n for n in names if n not in SCENES]
     if unknown:
         raise SystemExit(f"unknown scene {unknown[0]!r}; scenes: {', '.join(SCENES)}")
+    if args.gpus > 1 and args.device != "cuda":
+        raise SystemExit("--gpus N trains on CUDA GPUs (--device cuda)")
     args.out.mkdir(parents=True, exist_ok=True)
-    rows, pairs, record, pictures = [], [], [], []
+    settings = ["defaults", *args.compare]
+    jobs = [(scene_folder(name, args.out / "scenes", args), args.out / "runs" / f"{name}-{setting}-{seed}", seed,
+             [] if setting == "defaults" else setting.split(","))
+            for name in names for setting in settings for seed in range(args.seed, args.seed + args.runs)]
+    results = iter(train_all(jobs, args))
+    rows, pairs, record, pictures, per_view = [], [], [], [], []
     for name in names:
-        folder = scene_folder(name, args.out / "scenes", args)
-        for setting in ["defaults", *args.compare]:
-            settings = [] if setting == "defaults" else setting.split(",")
-            runs = [train(folder, args.out / "runs" / f"{name}-{setting}-{seed}", args, seed, settings)
-                    for seed in range(args.seed, args.seed + args.runs)]
+        for setting in settings:
+            runs = [next(results) for _ in range(args.runs)]
             if setting == "defaults":
                 base = runs
             else:
                 pairs.append((name, setting, paired(runs, base)))
             pictures.append(picture(args.out / "runs" / f"{name}-{setting}-{args.seed}", runs[0]))
             rows.append((name, setting, summary(runs)))
-            record.append({"scene": name, "setting": setting, "runs": [
-                {k: v for k, v in r.items() if k != "per_image"} for r in runs]})
-            print(table(rows[-1:]).splitlines()[-1], flush=True)
+            per_view.append((name, setting, runs))
+            record.append({"scene": name, "setting": setting, "runs": runs})
     print(f"\n{args.seconds:g} s per run on {args.device}\n" + table(rows))
     if pairs:
         print("\n" + pair_table(pairs))
+    views = view_table(per_view)
+    if views:
+        print("\n" + views)
     shown = [p for p in pictures if p is not None]
     if shown:  # one row per scene and setting: ground truth, render, depth of the first held-out view
         width = max(p.shape[1] for p in shown)

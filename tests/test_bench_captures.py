@@ -37,3 +37,39 @@ def test_a_compared_setting_is_scored_against_the_defaults_of_the_same_seeds():
                                        ("fox", "field.n_levels=8", {"pairs": 0})]).splitlines()
     assert lines[2] == "| demo-colmap | field.n_levels=8 | -0.25 ± 0.35 | 2 |"
     assert lines[3] == "| fox | field.n_levels=8 |  | 0 |"
+
+
+def test_each_held_out_view_is_tabled_with_its_mean_and_lowest_run():
+    def views(*scores):
+        return {**run(31.0, "none"), "per_image": [{"image": f"/x/images/{i:04d}.jpg", "psnr": p}
+                                                   for i, p in enumerate(scores)]}
+    rows = [("fox", "defaults", [views(31.0, 25.0), views(33.0, 31.0), {"error": "x"}]),
+            ("lego-colmap", "defaults", [views(*range(20))])]  # more views than the table shows
+    lines = bench_captures.view_table(rows).splitlines()
+    assert len(lines) == 3
+    assert lines[2] == "| fox | defaults | 2 | 0000 32.00 (31.00), 0001 28.00 (25.00) |"
+    assert bench_captures.view_table(rows[1:]) == ""
+
+
+def test_runs_on_several_gpus_each_hold_a_gpu_of_their_own_and_keep_their_order(monkeypatch):
+    import threading
+    import time
+    from argparse import Namespace
+
+    holding, lock, seen = set(), threading.Lock(), []
+
+    def fake_train(scene, out, args, seed, settings, gpu=None):
+        with lock:
+            assert gpu not in holding  # no two runs at once on one GPU
+            holding.add(gpu)
+            seen.append(gpu)
+        time.sleep(0.02)
+        with lock:
+            holding.remove(gpu)
+        return {"seed": seed}
+
+    monkeypatch.setattr(bench_captures, "train", fake_train)
+    jobs = [(None, None, seed, []) for seed in range(7)]
+    assert bench_captures.train_all(jobs, Namespace(gpus=3)) == [{"seed": s} for s in range(7)]
+    assert set(seen) == {0, 1, 2}
+    assert bench_captures.train_all(jobs[:2], Namespace(gpus=1)) == [{"seed": 0}, {"seed": 1}]
