@@ -140,6 +140,13 @@ def test_a_live_run_is_kept_in_out_when_the_viewer_stops(scene_dir, tmp_path, mo
         f"(give a scene folder to train one live)"
 
 
+def test_a_live_run_stopped_before_a_step_leaves_no_folder(scene_dir, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(Viewer, "serve", stopped_after(0))
+    out = tmp_path / "never"
+    assert main(["view", str(scene_dir), "--port", str(free_port()), "--out", str(out), *LIVE]) == 130
+    assert f"nothing trained; nothing written to {out}" in capsys.readouterr().err and not out.exists()
+
+
 def test_a_live_run_without_out_says_it_is_not_kept(scene_dir, monkeypatch, capsys):
     monkeypatch.setattr(Viewer, "serve", stopped_after(2))
     assert main(["view", str(scene_dir), "--port", str(free_port()), *LIVE]) == 130

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ngp_warp.outputs.camera_path import MAX_SIDE
 from ngp_warp.cli.common import (CHECKPOINT, MAX_DOWNSCALE, UserError, check_run_apart, new_trainer, positive,
-                                 refuse_probe, resolve_device, run_saver, seed_number, train_config)
+                                 refuse_probe, resolve_device, run_saver, seed_number, train_config, writable_dir)
 
 
 def add_view_parser(subparsers):
@@ -59,27 +59,34 @@ def load_target(args, device: str):
 
 
 def live_run_folder(args):
-    """The :class:`RunFolder` of ``--out`` for a scene trained live (None without ``--out``);
-    one-line errors, before anything trains, where the folder cannot take the run."""
+    """(the :class:`RunFolder` of ``--out`` for a scene trained live, whether this call created
+    the folder), or (None, False) without ``--out``; one-line errors, before anything trains,
+    where the folder cannot take the run."""
     from ngp_warp.training.run_folder import RunFolder, RunFolderError
 
     if args.out is None:
         if args.overwrite:
             raise UserError("--overwrite: replaces the run --out holds, but no --out is given")
-        return None
+        return None, False
     out = Path(args.out)
     check_run_apart(out, Path(args.target))
     try:
-        return RunFolder(out, overwrite=args.overwrite, flags=(None, "--overwrite"))
+        folder = RunFolder(out, overwrite=args.overwrite, flags=(None, "--overwrite"))
     except RunFolderError as e:
         raise UserError(str(e)) from None
+    created = not out.exists()
+    writable_dir(out)
+    return folder, created
 
 
-def keep_live_run(trainer, folder, args) -> None:
-    """Save the live run into ``folder`` (a :class:`RunFolder`), saying where, or why not."""
+def keep_live_run(trainer, folder, created: bool, args) -> None:
+    """Save the live run into ``folder`` (a :class:`RunFolder`), saying where, or why not; an
+    empty folder that ``created`` says the command made goes when nothing is written."""
     from ngp_warp.training.checkpoint import NonFiniteWeights
 
     if trainer.step_count == 0:
+        if created and not any(folder.path.iterdir()):
+            folder.path.rmdir()
         print(f"ngp-warp view: nothing trained; nothing written to {folder.path}", file=sys.stderr)
         return
     try:
@@ -123,7 +130,8 @@ def cmd_view(args) -> None:
 
     check_listen_address(args.host, args.port)  # before the run is loaded
     device = resolve_device(args.device)
-    folder = None if (Path(args.target) / CHECKPOINT).is_file() else live_run_folder(args)  # before the scene loads
+    is_run = (Path(args.target) / CHECKPOINT).is_file()
+    folder, created = (None, False) if is_run else live_run_folder(args)  # before the scene loads
     trainer, live = load_target(args, device)
     resolution = args.resolution or (800 if trainer.device.type == "cuda" else 200)
     moving = args.moving_resolution or max(16, resolution // 4)
@@ -143,4 +151,4 @@ def cmd_view(args) -> None:
     finally:
         viewer.close()
         if folder is not None:
-            keep_live_run(trainer, folder, args)
+            keep_live_run(trainer, folder, created, args)
