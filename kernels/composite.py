@@ -118,7 +118,10 @@ def composite_forward(
 
 # With upstream gradients g_C, g_O, g_D, g_w and v_i = c_i·g_C + m_i g_D + g_O + g_w_i
 # (so L = Σ_i w_i v_i), and ∂w_j/∂σ_i = δ_i T_{i+1} (j = i), −δ_i w_j (j > i):
-#   ∂L/∂c_i = w_i g_C,     ∂L/∂σ_i = δ_i (T_{i+1} v_i − Σ_{j>i} w_j v_j).
+#   ∂L/∂c_i = w_i g_C,     ∂L/∂σ_i = δ_i G_i,     G_i = T_{i+1} v_i − Σ_{j>i} w_j v_j.
+# σ_i and δ_i enter only as x_i = σ_i δ_i, except through the midpoint m_i = (t_start_i + t_end_i)/2
+# of D, so the intervals' gradients (bit 4 of has_grads; null arrays otherwise) are
+#   ∂L/∂t_start_i = −σ_i G_i + w_i g_D / 2,     ∂L/∂t_end_i = σ_i G_i + w_i g_D / 2.
 # Back to front, so the suffix sum accumulates without cancellation (a plain loop: reading in
 # groups as in the forward measured slower here). Bits 0-3 of has_grads say which of g_C, g_O,
 # g_D, g_w are given (the others are null arrays and count as zero).
@@ -138,6 +141,8 @@ def composite_backward(
     has_grads: int,
     grad_sigmas: wp.array(dtype=float),
     grad_rgbs: wp.array(dtype=wp.vec3),
+    grad_t_starts: wp.array(dtype=float),
+    grad_t_ends: wp.array(dtype=float),
 ):
     r = first + wp.tid()
     g_c = wp.vec3(0.0)
@@ -161,5 +166,11 @@ def composite_backward(
         if (has_grads & 8) != 0:
             v += grad_weights[i]
         grad_rgbs[i] = w * g_c
-        grad_sigmas[i] = delta * (T_next * v - suffix)
+        G = T_next * v - suffix
+        grad_sigmas[i] = delta * G
+        if (has_grads & 16) != 0:
+            along = sigmas[i] * G
+            middle = 0.5 * w * g_d
+            grad_t_starts[i] = middle - along
+            grad_t_ends[i] = middle + along
         suffix += w * v

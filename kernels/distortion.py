@@ -20,6 +20,16 @@ def spacing(t: float, near: float):
     return t
 
 
+@wp.func
+def spacing_slope(t: float, near: float):
+    """du/dt of :func:`spacing`: 1 (near ≤ 0), near/t² past near, 0 before it (clamped)."""
+    if near > 0.0:
+        if t > near:
+            return near / (t * t)
+        return 0.0
+    return 1.0
+
+
 # In the spacing u = t or u = s(t): u_start_i, u_end_i of each sample, and
 # m_i = (u_start_i + u_end_i)/2 − m_first, δ_i = u_end_i − u_start_i, with prefix sums
 # W_<i = Σ_{j<i} w_j and M_<i = Σ_{j<i} w_j m_j:
@@ -56,7 +66,10 @@ def distortion_forward(
 
 # With W, M the ray's totals and W_>i = W − W_<i − w_i, M_>i = M − M_<i − w_i m_i:
 #   ∂L_r/∂w_i = 2 (m_i W_<i − M_<i) + 2 (M_>i − m_i W_>i) + 2/3 w_i δ_i
-# (a first pass over the ray sums W and M).
+# (a first pass over the ray sums W and M). With interval_grads, the intervals' gradients too
+# (samples front to back, so m_j < m_i before i and > after it; L sees only differences of m):
+#   ∂L_r/∂m_i = 2 w_i (W_<i − W_>i),   ∂L_r/∂δ_i = w_i² / 3,
+#   ∂L_r/∂t_start_i = (∂L/∂m_i / 2 − ∂L/∂δ_i) u'(t_start_i),  ∂L_r/∂t_end_i = (∂L/∂m_i / 2 + ∂L/∂δ_i) u'(t_end_i).
 @wp.kernel
 def distortion_backward(
     first: int,
@@ -66,7 +79,10 @@ def distortion_backward(
     offsets: wp.array(dtype=wp.int32),
     near: float,
     grad_loss: wp.array(dtype=float),
+    interval_grads: int,
     grad_weights: wp.array(dtype=float),
+    grad_t_starts: wp.array(dtype=float),
+    grad_t_ends: wp.array(dtype=float),
 ):
     r = first + wp.tid()
     start = int(offsets[r])
@@ -91,5 +107,10 @@ def distortion_backward(
         wm_after = wm_total - wm_before - w * m
         d = 2.0 * (m * w_before - wm_before) + 2.0 * (wm_after - m * w_after)
         grad_weights[i] = g * (d + 2.0 / 3.0 * w * (u1 - u0))
+        if interval_grads != 0:
+            along = w * (w_before - w_after)  # ∂L/∂m_i / 2
+            width = w * w / 3.0
+            grad_t_starts[i] = g * (along - width) * spacing_slope(t_starts[i], near)
+            grad_t_ends[i] = g * (along + width) * spacing_slope(t_ends[i], near)
         w_before += w
         wm_before += w * m

@@ -64,6 +64,27 @@ def test_backward_matches_float64_autograd(eps):
     assert (g_sigmas > 0).any() and (g_sigmas < 0).any()
 
 
+@pytest.mark.parametrize("eps", [0.0, 1e-2])
+@pytest.mark.parametrize("used", [(0, 1, 2, 3), (2,), (1, 3)])
+def test_interval_gradients_match_float64_autograd(eps, used):
+    """t_starts and t_ends get the twin's gradient: through σ·δ in every output, and through the
+    midpoints in depth (depth alone once gave the intervals no gradient at all)."""
+    sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays = packed_rays()
+    t_starts.requires_grad_(True)
+    t_ends.requires_grad_(True)
+    outs = composite(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, eps, return_weights=True)
+    grads = [torch.randn_like(o) if k in used else torch.zeros_like(o) for k, o in enumerate(outs)]
+    g_starts, g_ends = torch.autograd.grad([outs[k] for k in used], (t_starts, t_ends), [grads[k] for k in used])
+
+    ts64 = t_starts.detach().double().requires_grad_(True)
+    te64 = t_ends.detach().double().requires_grad_(True)
+    ref = composite_ref.composite(sigmas.double(), rgbs.double(), ts64, te64, ray_indices, n_rays, eps)
+    r_starts, r_ends = torch.autograd.grad([ref[k] for k in used], (ts64, te64), [grads[k].double() for k in used])
+    assert r_ends.abs().max() > 1.0
+    assert_close64(g_starts, r_starts, rtol=1e-4, atol=1e-4)
+    assert_close64(g_ends, r_ends, rtol=1e-4, atol=1e-4)
+
+
 @pytest.mark.parametrize("used", [(0,), (1, 2), (3,), (0, 3)])
 def test_backward_with_some_outputs_unused(used):
     """Outputs that get no gradient count as zero (the kernel skips them)."""
@@ -91,14 +112,14 @@ def test_backward_twin_matches_autograd_in_float64():
     sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays = packed_rays()
     s64 = sigmas.double().requires_grad_(True)
     c64 = rgbs.double().requires_grad_(True)
-    t0, t1 = t_starts.double(), t_ends.double()
+    t0, t1 = t_starts.double().requires_grad_(True), t_ends.double().requires_grad_(True)
     ref = composite_ref.composite(s64, c64, t0, t1, ray_indices, n_rays, 1e-3)
     grads = [torch.randn_like(o) for o in ref]
-    a_sigmas, a_rgbs = torch.autograd.grad(ref, (s64, c64), grads)
-    t_sigmas, t_rgbs = composite_ref.composite_backward(s64.detach(), c64.detach(), t0, t1, ray_indices, n_rays,
-                                                        *grads, 1e-3)
-    torch.testing.assert_close(t_sigmas, a_sigmas, rtol=1e-10, atol=1e-12)
-    torch.testing.assert_close(t_rgbs, a_rgbs, rtol=1e-10, atol=1e-12)
+    expected = torch.autograd.grad(ref, (s64, c64, t0, t1), grads)
+    twin = composite_ref.composite_backward(s64.detach(), c64.detach(), t0.detach(), t1.detach(), ray_indices,
+                                            n_rays, *grads, 1e-3)
+    for got, want in zip(twin, expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
 
 
 def test_early_stop_zeroes_later_samples_and_their_gradients():

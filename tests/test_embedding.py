@@ -102,14 +102,15 @@ def test_float64_rays_pass_gradcheck_in_the_fields_parameters():
     do, and the op's gradient holds the distances fixed, as nerfacc's)."""
     grid, (rays_o, rays_d) = full_grid(), rays(4, dtype=torch.float64)
 
-    def render(shine, density):
+    def render(shine, density, background):
         def field(p, v):
             return density * torch.exp(-((p - CENTRE.double()) ** 2).sum(-1) / 0.3), torch.sigmoid(p + v * shine)
 
-        return render_rays(rays_o, rays_d, grid, field, MARCH, background=0.5)["rgb"]
+        return render_rays(rays_o, rays_d, grid, field, MARCH, background=background)["rgb"]
 
     inputs = (torch.tensor([1.5, -0.7, 0.9], dtype=torch.float64, requires_grad=True),
-              torch.tensor(5.0, dtype=torch.float64, requires_grad=True))
+              torch.tensor(5.0, dtype=torch.float64, requires_grad=True),
+              torch.tensor([0.3, 0.6, 0.9], dtype=torch.float64, requires_grad=True))  # kept in float64
     assert torch.autograd.gradcheck(render, inputs) and torch.autograd.gradgradcheck(render, inputs)
 
 
@@ -120,8 +121,13 @@ def test_composite_refuses_a_second_derivative_and_its_float64_twin_takes_one():
     (ga,) = torch.autograd.grad(composite(a, b, t0, t1, ray_indices, n_rays)[0].sum(), a, create_graph=True)
     with pytest.raises(RuntimeError, match="differentiable once"):
         torch.autograd.grad(ga.square().sum(), b)
-    inputs = (sigmas.double().requires_grad_(True), rgbs.double().requires_grad_(True))
-    fn = lambda x, c: composite(x, c, t0.double(), t1.double(), ray_indices, n_rays)  # noqa: E731
+    t = t0.clone().requires_grad_(True)  # the intervals too
+    (gt,) = torch.autograd.grad(composite(a, b, t, t1, ray_indices, n_rays)[2].sum(), t, create_graph=True)
+    with pytest.raises(RuntimeError, match="differentiable once"):
+        torch.autograd.grad(gt.square().sum(), t)
+    inputs = (sigmas.double().requires_grad_(True), rgbs.double().requires_grad_(True),
+              t0.double().requires_grad_(True), t1.double().requires_grad_(True))
+    fn = lambda x, c, s, e: composite(x, c, s, e, ray_indices, n_rays)  # noqa: E731
     assert torch.autograd.gradcheck(fn, inputs) and torch.autograd.gradgradcheck(fn, inputs)
     with pytest.raises(ValueError, match="float32 .or float64 throughout"):
         composite(inputs[0], rgbs, t0, t1, ray_indices, n_rays)

@@ -47,10 +47,11 @@ def composite(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays: int, early_st
 
 def composite_backward(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, g_rgb, g_opacity, g_depth,
                            g_weights=None, early_stop_eps: float = 0.0):
-    """Twin of the backward kernel: with v_i = c_i·g_C + m_i g_D + g_O + g_w_i,
-    dL/dc_i = w_i g_C and dL/dσ_i = δ_i (T_{i+1} v_i − Σ_{j>i} w_j v_j)."""
+    """Twin of the backward kernel: with v_i = c_i·g_C + m_i g_D + g_O + g_w_i and
+    G_i = T_{i+1} v_i − Σ_{j>i} w_j v_j, dL/dc_i = w_i g_C, dL/dσ_i = δ_i G_i and
+    dL/dt_start_i, dL/dt_end_i = ∓σ_i G_i + w_i g_D / 2."""
     offsets = ray_offsets_from_indices(ray_indices, n_rays).tolist()
-    g_sigmas, g_rgbs = [], []
+    g_sigmas, g_rgbs, g_starts, g_ends = [], [], [], []
     for r in range(n_rays):
         s = slice(offsets[r], offsets[r + 1])
         delta, alpha, trans, trans_next, keep = ray_terms(sigmas[s], t_starts[s], t_ends[s], early_stop_eps)
@@ -61,6 +62,10 @@ def composite_backward(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, g_rg
             v = v + g_weights[s].to(f64)
         wv = w * v
         suffix = torch.flip(torch.cumsum(torch.flip(wv, [0]), 0), [0]) - wv
-        g_sigmas.append(delta * (trans_next * keep * v - suffix))
+        big_g = trans_next * keep * v - suffix
+        g_sigmas.append(delta * big_g)
         g_rgbs.append(w[:, None] * g_rgb[r].to(f64))
-    return torch.cat(g_sigmas), torch.cat(g_rgbs)
+        along, middle = sigmas[s].to(f64) * big_g, 0.5 * w * g_depth[r].to(f64)
+        g_starts.append(middle - along)
+        g_ends.append(middle + along)
+    return torch.cat(g_sigmas), torch.cat(g_rgbs), torch.cat(g_starts), torch.cat(g_ends)

@@ -11,7 +11,8 @@ For the samples :math:`i` of one ray, front to back,
     C = \\sum_i w_i c_i, \\quad O = \\sum_i w_i, \\quad
     D = \\sum_i w_i \\frac{t^{start}_i + t^{end}_i}{2}.
 
-Gradients flow to :math:`\\sigma` and :math:`c` (not to the intervals) through a hand-written
+Gradients flow to :math:`\\sigma`, :math:`c` and the intervals (through
+:math:`\\sigma_i (t^{end}_i - t^{start}_i)` and the depth's midpoints) through a hand-written
 backward kernel, to first order: a second derivative through it raises (one line) rather than
 return a silently wrong value (:mod:`ngp_warp.ops._differentiable_once`). float64 samples go through the
 pure-torch float64 twin (:mod:`ngp_warp._reference.composite`), which autograd differentiates
@@ -51,9 +52,11 @@ def launch_forward(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps: 
     return rgb, opacity, depth, weights, trans
 
 
-def launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights):
-    """The backward kernel: (dL/dσ [S], dL/dc [S, 3]) float32 from the gradients of rgb,
-    opacity, depth and weights (each None when absent), computed without autograd."""
+def launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights,
+                    interval_grads: bool = False):
+    """The backward kernel: (dL/dσ [S], dL/dc [S, 3], dL/dt_start [S], dL/dt_end [S]) float32
+    from the gradients of rgb, opacity, depth and weights (each None when absent), computed
+    without autograd; the intervals' two are None unless ``interval_grads``."""
     sigmas, rgbs, t_starts, t_ends, ray_offsets, trans = map(_plain, (sigmas, rgbs, t_starts, t_ends, ray_offsets,
                                                                        trans))
     grads = [None if g is None else _plain(g.detach().float().contiguous()) for g in (g_rgb, g_opacity, g_depth,
@@ -62,14 +65,15 @@ def launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g
     # Zeros: padding rows past the last ray (see ngp_warp.ops.prune) get no gradient. (Under
     # torch.func.grad new tensors come wrapped too: the kernel writes through to their storage.)
     grad_sigmas, grad_rgbs = torch.zeros_like(sigmas), torch.zeros_like(rgbs)
+    grad_t = (torch.zeros_like(t_starts), torch.zeros_like(t_ends)) if interval_grads else (None, None)
     if has_grads:
         _wp.launch(
             K.composite_backward, ray_offsets.shape[0] - 1,
-            [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads, _plain(grad_sigmas),
-             _plain(grad_rgbs)],
+            [sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, *grads, has_grads | (16 if interval_grads else 0),
+             _plain(grad_sigmas), _plain(grad_rgbs), *map(_plain, grad_t)],
             _wp.device_of(sigmas), block_dim=_BLOCK,
         )
-    return grad_sigmas, grad_rgbs
+    return grad_sigmas, grad_rgbs, *grad_t
 
 
 def _loop_vmap(apply, info, in_dims, args):
@@ -110,10 +114,9 @@ class _Composite(torch.autograd.Function):
         incoming = (g_rgb, g_opacity, g_depth, g_weights)
         if all(g is None for g in incoming):
             return None, None, None, None, None, None
-        grad_sigmas, grad_rgbs = launch_backward(*saved, *incoming)
-        grad_sigmas, grad_rgbs = refuse_second_derivative("composite", (grad_sigmas, grad_rgbs),
-                                                          (saved[0], saved[1], *incoming))
-        return grad_sigmas, grad_rgbs, None, None, None, None
+        grads = launch_backward(*saved, *incoming, interval_grads=any(ctx.needs_input_grad[2:4]))
+        grads = refuse_second_derivative("composite", grads, (*saved[:4], *incoming))
+        return *grads, None, None
 
 
 # The op as torch.compile and meta tensors see it, registered with torch.library: opaque (no
@@ -137,13 +140,14 @@ def _(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps):
 def _composite_backward_op(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
                            ray_offsets: torch.Tensor, trans: torch.Tensor, g_rgb: torch.Tensor,
                            g_opacity: torch.Tensor, g_depth: torch.Tensor,
-                           g_weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    return launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights)
+                           g_weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    return launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights,
+                           interval_grads=True)
 
 
 @_composite_backward_op.register_fake
 def _(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights):
-    return torch.empty_like(sigmas), torch.empty_like(rgbs)
+    return torch.empty_like(sigmas), torch.empty_like(rgbs), torch.empty_like(t_starts), torch.empty_like(t_ends)
 
 
 def _save_inputs(ctx, inputs, output):
@@ -151,8 +155,7 @@ def _save_inputs(ctx, inputs, output):
 
 
 def _composite_op_backward(ctx, g_rgb, g_opacity, g_depth, g_weights, _g_trans):
-    grad_sigmas, grad_rgbs = _composite_backward_op(*ctx.saved_tensors, g_rgb, g_opacity, g_depth, g_weights)
-    return grad_sigmas, grad_rgbs, None, None, None, None
+    return *_composite_backward_op(*ctx.saved_tensors, g_rgb, g_opacity, g_depth, g_weights), None, None
 
 
 def _refuse(ctx, *_):
@@ -186,7 +189,7 @@ def composite_packed(
     conversion from ray indices.
 
     Returns ``(rgb [n_rays, 3], opacity [n_rays], depth [n_rays], weights [S])``, all
-    differentiable w.r.t. ``sigmas`` and ``rgbs``.
+    differentiable w.r.t. ``sigmas``, ``rgbs``, ``t_starts`` and ``t_ends``.
     """
     return _Composite.apply(sigmas, rgbs, t_starts, t_ends, ray_offsets, float(early_stop_eps))[:4]
 
@@ -250,7 +253,8 @@ def composite(
     Args:
         sigmas: [S] float32 densities σ ≥ 0. rgbs: [S, 3] float32 colours. float64 throughout
             (these and the intervals) runs the float64 twin instead of the kernels.
-        t_starts, t_ends: [S] float32 sample intervals (no gradient).
+        t_starts, t_ends: [S] float32 sample intervals (differentiable: through
+            :math:`\\sigma_i (t^{end}_i - t^{start}_i)` and the depth's midpoints).
         ray_indices: [S] int64 or int32, the ray of each sample, **sorted** (samples of a ray
             contiguous and front to back), each in ``[0, n_rays)``.
         n_rays: number of rays (rays without samples get zeros).

@@ -29,12 +29,15 @@ class _Distortion(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_loss):
         weights, t_starts, t_ends, offsets = ctx.saved_tensors
+        intervals = any(ctx.needs_input_grad[1:3])
         grad = torch.zeros_like(weights)  # rows of no ray (padding) get none
+        grad_t = (torch.zeros_like(t_starts), torch.zeros_like(t_ends)) if intervals else (None, None)
         _wp.launch(K.distortion_backward, offsets.shape[0] - 1,
-                   [weights, t_starts, t_ends, offsets, ctx.near, grad_loss.detach().float().contiguous(), grad],
+                   [weights, t_starts, t_ends, offsets, ctx.near, grad_loss.detach().float().contiguous(),
+                    int(intervals), grad, *grad_t],
                    _wp.device_of(weights), block_dim=_BLOCK)
-        (grad,) = refuse_second_derivative("distortion_loss", (grad,), (weights, grad_loss))
-        return grad, None, None, None, None
+        grads = refuse_second_derivative("distortion_loss", (grad, *grad_t), (weights, t_starts, t_ends, grad_loss))
+        return *grads, None, None
 
 
 def distortion_loss_packed(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
@@ -62,7 +65,8 @@ def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch
     Args:
         weights: [S] float32 compositing weights :math:`w_i` (differentiable, e.g. from
             :func:`ngp_warp.composite` with ``return_weights``).
-        t_starts, t_ends: [S] float32 sample intervals (no gradient).
+        t_starts, t_ends: [S] float32 sample intervals (differentiable, through the midpoints
+            and lengths; with ``near`` > 0 not below ``near``, where s is clamped).
         ray_indices: [S] int64 ray of each sample, **sorted** (samples of a ray contiguous and
             front to back; not checked on the device). Rows with index ``n_rays`` or more
             (the padding rows of ``render_rays``) belong to no ray and are ignored.
@@ -70,7 +74,8 @@ def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch
         near: 0 (distances in the units of ``t``) or the rays' near distance (> 0, units of ``t``).
 
     Returns:
-        [n_rays] float32 loss per ray (0 for rays without samples), differentiable w.r.t. ``weights``.
+        [n_rays] float32 loss per ray (0 for rays without samples), differentiable w.r.t. ``weights``,
+        ``t_starts`` and ``t_ends``.
     """
     if not isinstance(weights, torch.Tensor) or weights.dim() != 1:
         raise ValueError(f"weights must be a [S] tensor, got {getattr(weights, 'shape', type(weights).__name__)}")

@@ -36,10 +36,12 @@ from ngp_warp.ops.raymarch import MarchOptions, RaySamples, ray_marching
 FieldFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 
-def _background(background, n_rays: int, device: torch.device) -> torch.Tensor | None:
+def _background(background, n_rays: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor | None:
+    """``background`` as a [3] or [n_rays, 3] tensor in the rays' ``dtype`` (a float64 path keeps
+    its background's digits, and its gradient)."""
     if background is None:
         return None
-    bg = torch.as_tensor(background, dtype=torch.float32, device=device)
+    bg = torch.as_tensor(background, dtype=dtype, device=device)
     if bg.dim() == 0:
         bg = bg.expand(3)
     if tuple(bg.shape) not in ((3,), (n_rays, 3)):
@@ -316,7 +318,8 @@ def render_rays(
                            unit_directions=True)
     if validate:
         field_fn, sigma_fn = _checked(field_fn, "field_fn"), sigma_fn and _checked(sigma_fn, "sigma_fn")
-    bg = _background(background, rays_o.shape[0], rays_o.device)
+    bg = _background(background, rays_o.shape[0], rays_o.device,
+                     torch.float64 if rays_o.dtype == torch.float64 else torch.float32)
     samples, extra = _within(samples, t_min, t_max), {}
     if sigma_fn is not None:
         samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity, alpha_thre)

@@ -76,7 +76,8 @@ def rendering(t_starts: torch.Tensor, t_ends: torch.Tensor, ray_indices: torch.T
     intervals and rays, and composite them with the Warp kernels.
 
     Args:
-        t_starts, t_ends: [S] float32 intervals; ray_indices: [S] int64 sorted, as
+        t_starts, t_ends: [S] float32 intervals (differentiable, as nerfacc's: through the
+            callback, σ·δ and the depth); ray_indices: [S] int64 sorted, as
             :func:`ngp_warp.ray_marching` returns them.
         n_rays: number of rays.
         rgb_sigma_fn: ``(t_starts [S], t_ends [S], ray_indices [S]) → (rgbs [S, 3], sigmas [S])``.
