@@ -64,17 +64,20 @@ def test_backward_matches_float64_autograd(eps):
     assert (g_sigmas > 0).any() and (g_sigmas < 0).any()
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 @pytest.mark.parametrize("eps", [0.0, 1e-2])
 @pytest.mark.parametrize("used", [(0, 1, 2, 3), (2,), (1, 3)])
-def test_interval_gradients_match_float64_autograd(eps, used):
+def test_interval_gradients_match_float64_autograd(eps, used, device):
     """t_starts and t_ends get the twin's gradient: through σ·δ in every output, and through the
     midpoints in depth (depth alone once gave the intervals no gradient at all)."""
     sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays = packed_rays()
     t_starts.requires_grad_(True)
     t_ends.requires_grad_(True)
-    outs = composite(sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays, eps, return_weights=True)
+    outs = composite(*(x.to(device) for x in (sigmas, rgbs, t_starts, t_ends, ray_indices)), n_rays, eps,
+                     return_weights=True)
     grads = [torch.randn_like(o) if k in used else torch.zeros_like(o) for k, o in enumerate(outs)]
     g_starts, g_ends = torch.autograd.grad([outs[k] for k in used], (t_starts, t_ends), [grads[k] for k in used])
+    grads = [g.cpu() for g in grads]
 
     ts64 = t_starts.detach().double().requires_grad_(True)
     te64 = t_ends.detach().double().requires_grad_(True)

@@ -57,12 +57,14 @@ def test_gradients_match_the_float64_twin(near):
     torch.testing.assert_close(w1.grad.double(), w2.grad, rtol=1e-4, atol=1e-6 if near == 0 else 1e-8)
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 @pytest.mark.parametrize("near", [0.0, 4.0])
-def test_interval_gradients_match_the_float64_twin(near):
+def test_interval_gradients_match_the_float64_twin(near, device):
     w, ts, te, rays, n = packed_samples(COUNTS)  # with near 4 some samples lie before it: no gradient
     upstream = torch.randn(n)
     s1, e1 = ts.clone().requires_grad_(True), te.clone().requires_grad_(True)
-    (distortion_loss(w, s1, e1, rays, n, near=near) * upstream).sum().backward()
+    (distortion_loss(w.to(device), s1.to(device), e1.to(device), rays.to(device), n, near=near)
+     * upstream.to(device)).sum().backward()
     s2, e2 = ts.double().requires_grad_(True), te.double().requires_grad_(True)
     (distortion_ref.distortion_loss(w.double(), s2, e2, rays, n, near=near) * upstream.double()).sum().backward()
     assert e2.grad.abs().max() > (1e-3 if near == 0 else 1e-4) and (s2.grad == 0).any() == (near > 0)
