@@ -113,9 +113,9 @@ def scene_folder(name: str, work: Path, args) -> Path:
     return folder
 
 
-def train(scene: Path, out: Path, args, seed: int, settings: list[str], gpu: int | None = None) -> dict:
-    """One ``ngp-warp train`` run (on CUDA GPU ``gpu`` alone where given); its metrics.json with
-    the run's contraction added."""
+def train(scene: Path, out: Path, args, seed: int, settings: list[str], gpu: str | None = None) -> dict:
+    """One ``ngp-warp train`` run (on the CUDA GPU of id ``gpu`` alone where given); its
+    metrics.json with the run's contraction added."""
     command = ["ngp-warp", "train", str(scene), "--out", str(out), "--seconds", str(args.seconds), "--seed", str(seed),
                "--no-video", "--quiet", "--overwrite", "--device", args.device, "--downscale", str(args.downscale)]
     for setting in settings:
@@ -134,11 +134,11 @@ def train(scene: Path, out: Path, args, seed: int, settings: list[str], gpu: int
 
 def train_all(jobs: list[tuple[Path, Path, int, list[str]]], args) -> list[dict]:
     """:func:`train` each (scene, out, seed, settings) of ``jobs``, ``args.gpus`` at a time, each
-    on a GPU of its own; the metrics in the order of ``jobs``."""
+    on a GPU of its own (of ``args.gpu_ids``); the metrics in the order of ``jobs``."""
     if args.gpus <= 1:
         return [train(*job[:2], args, *job[2:]) for job in jobs]
     free = queue.SimpleQueue()
-    for gpu in range(args.gpus):
+    for gpu in args.gpu_ids[:args.gpus]:
         free.put(gpu)
 
     def on_a_free_gpu(job):
@@ -274,8 +274,13 @@ def main() -> None:
     unknown = [n for n in names if n not in SCENES]
     if unknown:
         raise SystemExit(f"unknown scene {unknown[0]!r}; scenes: {', '.join(SCENES)}")
-    if args.gpus > 1 and args.device != "cuda":
-        raise SystemExit("--gpus N trains on CUDA GPUs (--device cuda)")
+    if args.gpus > 1:
+        if args.device != "cuda":
+            raise SystemExit("--gpus N trains on CUDA GPUs (--device cuda)")
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES")  # a scheduler's share of the machine, if set
+        args.gpu_ids = visible.split(",") if visible else [str(i) for i in range(torch.cuda.device_count())]
+        if args.gpus > len(args.gpu_ids):
+            raise SystemExit(f"--gpus {args.gpus}: {len(args.gpu_ids)} GPUs visible")
     args.out.mkdir(parents=True, exist_ok=True)
     settings = ["defaults", *args.compare]
     jobs = [(scene_folder(name, args.out / "scenes", args), args.out / "runs" / f"{name}-{setting}-{seed}", seed,

@@ -22,9 +22,9 @@ def spacing(t: float, near: float):
 
 @wp.func
 def spacing_slope(t: float, near: float):
-    """du/dt of :func:`spacing`: 1 (near ≤ 0), near/t² past near, 0 before it (clamped)."""
+    """du/dt of :func:`spacing`: 1 (near ≤ 0), near/t² from near on, 0 before it (clamped)."""
     if near > 0.0:
-        if t > near:
+        if t >= near:
             return near / (t * t)
         return 0.0
     return 1.0

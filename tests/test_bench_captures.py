@@ -70,6 +70,8 @@ def test_runs_on_several_gpus_each_hold_a_gpu_of_their_own_and_keep_their_order(
 
     monkeypatch.setattr(bench_captures, "train", fake_train)
     jobs = [(None, None, seed, []) for seed in range(7)]
-    assert bench_captures.train_all(jobs, Namespace(gpus=3)) == [{"seed": s} for s in range(7)]
-    assert set(seen) == {0, 1, 2}
+    ids = ["4", "5", "7", "2"]  # CUDA_VISIBLE_DEVICES's ids: the first three are used
+    assert bench_captures.train_all(jobs, Namespace(gpus=3, gpu_ids=ids)) == [{"seed": s} for s in range(7)]
+    assert set(seen) == {"4", "5", "7"}
     assert bench_captures.train_all(jobs[:2], Namespace(gpus=1)) == [{"seed": 0}, {"seed": 1}]
+    assert None in seen[-2:]  # one at a time: on the GPUs the command sees

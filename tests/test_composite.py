@@ -69,7 +69,7 @@ def test_backward_matches_float64_autograd(eps):
 @pytest.mark.parametrize("used", [(0, 1, 2, 3), (2,), (1, 3)])
 def test_interval_gradients_match_float64_autograd(eps, used, device):
     """t_starts and t_ends get the twin's gradient: through σ·δ in every output, and through the
-    midpoints in depth (depth alone once gave the intervals no gradient at all)."""
+    midpoints in depth (also when depth is the only output used)."""
     sigmas, rgbs, t_starts, t_ends, ray_indices, n_rays = packed_rays()
     t_starts.requires_grad_(True)
     t_ends.requires_grad_(True)

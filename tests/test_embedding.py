@@ -179,20 +179,23 @@ def test_composite_is_a_torch_library_op_that_compiles_without_graph_breaks():
 
     n_rays, s = 5, 40
     sigmas, rgbs, t0, t1, ray_indices = packed(3, n_rays, s)
-    sigmas, rgbs = sigmas.requires_grad_(True), rgbs.requires_grad_(True)
+    sigmas, rgbs, t0 = sigmas.requires_grad_(True), rgbs.requires_grad_(True), t0.requires_grad_(True)
 
-    def loss(sigmas, rgbs):
+    def loss(sigmas, rgbs, t0):
         rgb, opacity, depth = composite(sigmas, rgbs, t0, t1, ray_indices, n_rays)
         return rgb.square().sum() + opacity.sum() + 0.3 * depth.sum()
 
     torch._dynamo.reset()
     compiled = torch.compile(loss, fullgraph=True, backend="aot_eager")  # a graph break would raise
-    value = compiled(sigmas, rgbs)
-    grads = torch.autograd.grad(value, (sigmas, rgbs))
-    eager = loss(sigmas, rgbs)
+    value = compiled(sigmas, rgbs, t0)
+    grads = torch.autograd.grad(value, (sigmas, rgbs, t0))
+    eager = loss(sigmas, rgbs, t0)
     torch.testing.assert_close(value, eager)
-    for a, b in zip(grads, torch.autograd.grad(eager, (sigmas, rgbs)), strict=True):
+    for a, b in zip(grads, torch.autograd.grad(eager, (sigmas, rgbs, t0)), strict=True):
         torch.testing.assert_close(a, b)
+    assert grads[2].abs().max() > 0.1  # the intervals' gradient, through the compiled op too
+    (no_interval,) = torch.autograd.grad(compiled(sigmas, rgbs, t0.detach()), sigmas)  # intervals without grad
+    torch.testing.assert_close(no_interval, grads[0])
     offsets = _ray_offsets_op(ray_indices, n_rays)
     checks = torch.library.opcheck(_composite_op, (sigmas, rgbs, t0, t1, offsets, 1e-4))
     assert set(checks.values()) == {"SUCCESS"}

@@ -106,12 +106,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def stopped_after(ticks: int):
-    """A Viewer.serve that ticks ``ticks`` times, then stops as Ctrl-C does."""
-    def serve(viewer, stop=None):
+def stopped_after(ticks: int, stop: type[BaseException] = KeyboardInterrupt):
+    """A Viewer.serve that ticks ``ticks`` times, then stops as Ctrl-C does (or raises ``stop``)."""
+    def serve(viewer, event=None):
         for _ in range(ticks):
             viewer.tick()
-        raise KeyboardInterrupt
+        raise stop
     return serve
 
 
@@ -119,19 +119,21 @@ LIVE = ["--device", "cpu", "--target-samples", "4096", "--set", "grid_resolution
 
 
 def test_a_live_run_is_kept_in_out_when_the_viewer_stops(scene_dir, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(Viewer, "serve", stopped_after(6))
+    monkeypatch.setattr(Viewer, "serve", stopped_after(25))
     out = tmp_path / "live"
     assert main(["view", str(scene_dir), "--port", str(free_port()), "--out", str(out), *LIVE]) == 130
     err = capsys.readouterr().err
-    assert f"saved at step 6 to {out}" in err and "not kept" not in err
+    assert f"saved at step 25 to {out}" in err and "not kept" not in err
     trainer, record = load_trainer(out / "checkpoint.pt", device="cpu")
-    assert trainer.step_count == 6 and record["downscale"] == 1
-    assert (out / "normalisation.json").is_file() and (out / "training_curve.csv").is_file()
+    assert trainer.step_count == 25 and record["downscale"] == 1 and (out / "normalisation.json").is_file()
+    rows = (out / "training_curve.csv").read_text().splitlines()[1:]
+    assert [int(float(r.split(",")[0])) for r in rows] == [10, 20]  # the viewer's readouts
     # the folder now holds a run: another live run needs --overwrite, and says so before training
     assert main(["view", str(scene_dir), "--port", str(free_port()), "--out", str(out), *LIVE]) == 2
     assert "holds another run" in capsys.readouterr().err.strip().splitlines()[-1]
+    monkeypatch.setattr(Viewer, "serve", stopped_after(3))
     assert main(["view", str(scene_dir), "--port", str(free_port()), "--out", str(out), "--overwrite", *LIVE]) == 130
-    assert load_trainer(out / "checkpoint.pt", device="cpu")[0].step_count == 6
+    assert load_trainer(out / "checkpoint.pt", device="cpu")[0].step_count == 3
     # a trained run is viewed, not trained: live training's flags are refused in one line
     assert main(["view", str(out), "--port", str(free_port()), "--device", "cpu", "--out", str(tmp_path / "x"),
                  "--seed", "3"]) == 2
@@ -153,8 +155,19 @@ def test_a_live_run_without_out_says_it_is_not_kept(scene_dir, monkeypatch, caps
     assert "training live, not kept: --out DIR keeps it" in capsys.readouterr().err
 
 
+def test_a_failed_step_is_not_saved_over_the_folder(scene_dir, tmp_path, monkeypatch):
+    monkeypatch.setattr(Viewer, "serve", stopped_after(2, RuntimeError))
+    out = tmp_path / "failed"
+    with pytest.raises(RuntimeError):
+        main(["view", str(scene_dir), "--port", str(free_port()), "--out", str(out), *LIVE])
+    assert not out.exists()
+
+
 def test_out_that_cannot_take_a_live_run_is_one_line(scene_dir, tmp_path, capsys):
     port = str(free_port())
+    (tmp_path / "a_file").write_text("")
+    assert main(["view", str(scene_dir), "--port", port, "--out", str(tmp_path / "a_file" / "run"), *LIVE]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].endswith("is not a writable folder)")
     assert main(["view", str(scene_dir), "--port", port, "--out", str(scene_dir / "run"), *LIVE]) == 2
     assert "would be written into the dataset" in capsys.readouterr().err.strip().splitlines()[-1]
     assert main(["view", str(scene_dir), "--port", port, "--overwrite", *LIVE]) == 2

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import errno
+import os
 import socket
 import sys
 from pathlib import Path
 
 from ngp_warp.outputs.camera_path import MAX_SIDE
 from ngp_warp.cli.common import (CHECKPOINT, MAX_DOWNSCALE, UserError, check_run_apart, new_trainer, positive,
-                                 refuse_probe, resolve_device, run_saver, seed_number, train_config, writable_dir)
+                                 refuse_probe, resolve_device, run_saver, seed_number, train_config)
 
 
 def add_view_parser(subparsers):
@@ -59,34 +60,32 @@ def load_target(args, device: str):
 
 
 def live_run_folder(args):
-    """(the :class:`RunFolder` of ``--out`` for a scene trained live, whether this call created
-    the folder), or (None, False) without ``--out``; one-line errors, before anything trains,
-    where the folder cannot take the run."""
+    """The :class:`RunFolder` of ``--out`` for a scene trained live (None without ``--out``);
+    one-line errors, before anything trains, where the folder cannot take the run. Nothing is
+    created until the run is saved."""
     from ngp_warp.training.run_folder import RunFolder, RunFolderError
 
     if args.out is None:
         if args.overwrite:
             raise UserError("--overwrite: replaces the run --out holds, but no --out is given")
-        return None, False
+        return None
     out = Path(args.out)
     check_run_apart(out, Path(args.target))
     try:
         folder = RunFolder(out, overwrite=args.overwrite, flags=(None, "--overwrite"))
     except RunFolderError as e:
         raise UserError(str(e)) from None
-    created = not out.exists()
-    writable_dir(out)
-    return folder, created
+    existing = next(p for p in (out, *out.absolute().parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise UserError(f"--out {out}: cannot write there ({existing} is not a writable folder)")
+    return folder
 
 
-def keep_live_run(trainer, folder, created: bool, args) -> None:
-    """Save the live run into ``folder`` (a :class:`RunFolder`), saying where, or why not; an
-    empty folder that ``created`` says the command made goes when nothing is written."""
+def keep_live_run(trainer, folder, args) -> None:
+    """Save the live run into ``folder`` (a :class:`RunFolder`), saying where, or why not."""
     from ngp_warp.training.checkpoint import NonFiniteWeights
 
     if trainer.step_count == 0:
-        if created and not any(folder.path.iterdir()):
-            folder.path.rmdir()
         print(f"ngp-warp view: nothing trained; nothing written to {folder.path}", file=sys.stderr)
         return
     try:
@@ -130,8 +129,7 @@ def cmd_view(args) -> None:
 
     check_listen_address(args.host, args.port)  # before the run is loaded
     device = resolve_device(args.device)
-    is_run = (Path(args.target) / CHECKPOINT).is_file()
-    folder, created = (None, False) if is_run else live_run_folder(args)  # before the scene loads
+    folder = None if (Path(args.target) / CHECKPOINT).is_file() else live_run_folder(args)  # before the scene loads
     trainer, live = load_target(args, device)
     resolution = args.resolution or (800 if trainer.device.type == "cuda" else 200)
     moving = args.moving_resolution or max(16, resolution // 4)
@@ -146,9 +144,13 @@ def cmd_view(args) -> None:
         "training live, not kept: --out DIR keeps it"
     print(f"ngp-warp view: {args.target} ({what}) at {viewer.url}  (Ctrl-C to stop)", file=sys.stderr)
     print(viewer.url, flush=True)
+    interrupted = False
     try:
         viewer.serve()
+    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (main's sigterm_as_interrupt): the way a viewer stops
+        interrupted = True
+        raise
     finally:
         viewer.close()
-        if folder is not None:
-            keep_live_run(trainer, folder, created, args)
+        if interrupted and folder is not None:  # not after a failed step: its state may be broken
+            keep_live_run(trainer, folder, args)

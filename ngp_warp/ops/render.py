@@ -36,12 +36,14 @@ from ngp_warp.ops.raymarch import MarchOptions, RaySamples, ray_marching
 FieldFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 
-def _background(background, n_rays: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor | None:
-    """``background`` as a [3] or [n_rays, 3] tensor in the rays' ``dtype`` (a float64 path keeps
-    its background's digits, and its gradient)."""
+def _background(background, rays_o: torch.Tensor) -> torch.Tensor | None:
+    """``background`` as a [3] or [N, 3] tensor for the N ``rays_o``, float64 on the float64
+    path (which keeps its digits, and its gradient's), else float32."""
     if background is None:
         return None
-    bg = torch.as_tensor(background, dtype=dtype, device=device)
+    n_rays = rays_o.shape[0]
+    dtype = torch.float64 if rays_o.dtype == torch.float64 else torch.float32
+    bg = torch.as_tensor(background, dtype=dtype, device=rays_o.device)
     if bg.dim() == 0:
         bg = bg.expand(3)
     if tuple(bg.shape) not in ((3,), (n_rays, 3)):
@@ -318,8 +320,7 @@ def render_rays(
                            unit_directions=True)
     if validate:
         field_fn, sigma_fn = _checked(field_fn, "field_fn"), sigma_fn and _checked(sigma_fn, "sigma_fn")
-    bg = _background(background, rays_o.shape[0], rays_o.device,
-                     torch.float64 if rays_o.dtype == torch.float64 else torch.float32)
+    bg = _background(background, rays_o)
     samples, extra = _within(samples, t_min, t_max), {}
     if sigma_fn is not None:
         samples, extra = _pruned(samples, sigma_fn, grid, early_stop_eps, sample_capacity, alpha_thre)
