@@ -129,6 +129,23 @@ def test_missing_images_are_skipped_and_the_transforms_dict_round_trips(tmp_path
     torch.testing.assert_close(direct.world_from_scene, via_json.world_from_scene)
 
 
+def test_images_txt_without_its_points_lines_reads_every_image(tmp_path):
+    """Hand-written models often give each image one line, leaving out the 2-D points line."""
+    colmap_scene(tmp_path, "PINHOLE", n=6, binary=False)
+    text = tmp_path / "sparse" / "0" / "images.txt"
+    standard = read_colmap_model(text.parent).images
+    lines = [line for line in text.read_text().splitlines() if line.endswith(".png")]  # the image lines
+    assert len(lines) == 6
+    text.write_text("# one line per image\n" + "\n".join(lines) + "\n")
+    one_line = read_colmap_model(text.parent).images
+    assert [im.name for im in one_line] == [im.name for im in standard] and len(one_line) == 6
+    for a, b in zip(one_line, standard):
+        np.testing.assert_allclose(a.qvec, b.qvec)
+        np.testing.assert_allclose(a.tvec, b.tvec)
+    text.write_text("\n".join(f"{line}\n1.5 2.5 -1 3.5 4.5 7" for line in lines) + "\n")  # with points
+    assert [im.name for im in read_colmap_model(text.parent).images] == [im.name for im in standard]
+
+
 def test_cameras_that_differ_get_per_frame_intrinsics(tmp_path):
     written = colmap_scene(tmp_path, "PINHOLE", n=4)
     cameras = written["cameras"] + [(2, "SIMPLE_RADIAL", 12, 10, COLMAP_TEST_PARAMS["SIMPLE_RADIAL"])]

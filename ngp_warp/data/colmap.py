@@ -197,11 +197,28 @@ def _cameras_txt(path: Path) -> list[ColmapCamera]:
     return out
 
 
+def _image_like(fields: list[str]) -> bool:
+    """Whether a line's fields read as an image line (IMAGE_ID, 7 numbers, CAMERA_ID, NAME), not
+    as its POINTS2D line (numbers in triples)."""
+    def number(text: str) -> bool:
+        try:
+            float(text)
+        except ValueError:
+            return False
+        return True
+    points = len(fields) % 3 == 0 and all(number(f) for f in fields)
+    return len(fields) >= 10 and not points and fields[0].isdigit() and fields[8].isdigit()
+
+
 def _images_txt(path: Path) -> list[ColmapImage]:
+    """The images of an images.txt: two lines each (the pose, then the 2-D points, perhaps empty),
+    or one line each in files written by hand without the points lines."""
     lines, out = _lines(path), []
     while lines and not lines[-1][1]:
         lines.pop()  # blank lines at the end
-    for line, fields in lines[0::2]:
+    second = [fields for _, fields in lines[1::2] if fields]
+    one_line_each = bool(second) and all(_image_like(fields) for fields in second)
+    for line, fields in [entry for entry in lines if entry[1]] if one_line_each else lines[0::2]:
         if len(fields) > 10:  # a name with spaces
             fields = fields[:9] + [" ".join(fields[9:])]
         v = _parse(path, line, fields, "ifffffffis")
