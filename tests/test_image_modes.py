@@ -36,6 +36,19 @@ def test_every_mode_reads_as_imageio_reads_it(tmp_path, mode):
     assert len(np.unique(got)) > 4  # not a constant image
 
 
+@pytest.mark.parametrize("suffix", ["jpg", "tif"])
+def test_a_cmyk_file_reads_as_its_rgb(tmp_path, suffix):
+    """A CMYK JPEG or TIFF (print workflows) reads as Pillow's RGB of it, not as 4 channels of ink."""
+    path = tmp_path / f"image.{suffix}"
+    rgb = Image.fromarray(np.random.default_rng(4).integers(0, 256, (6, 5, 3), dtype=np.uint8))
+    rgb.convert("CMYK").save(path)
+    got = read_image(path)
+    assert got.shape == (6, 5, 3)
+    with Image.open(path) as image:
+        np.testing.assert_array_equal(got, np.asarray(image.convert("RGB")))
+    assert np.abs(got.astype(int) - np.asarray(rgb).astype(int)).mean() < 20  # near the colours it was made from
+
+
 def test_a_truncated_or_foreign_file_is_one_line(tmp_path):
     good = tmp_path / "good.png"
     _pixels("RGB").save(good)

@@ -21,12 +21,15 @@ PLAIN_MODES = ("RGB", "RGBA", "L", "LA")  # Pillow's 8-bit modes, whose pixels n
 def _decoded(path: Path) -> np.ndarray:
     """The image's pixels as imageio's Pillow plugin reads them: an 8-bit image straight from
     Pillow (imageio's own steps cost about 1 ms an image, most of it holding the GIL that the
-    loader's threads share), any other mode (palettes, 16 bit) or a file Pillow cannot open
-    through imageio, which converts it or says what is wrong."""
+    loader's threads share), CMYK and other colour spaces converted to RGB by Pillow, any other
+    mode (palettes, 16 bit) or a file Pillow cannot open through imageio, which converts it or
+    says what is wrong."""
     try:
         with Image.open(path) as image:
             if image.mode in PLAIN_MODES:
                 return np.asarray(image)
+            if image.mode in ("CMYK", "YCbCr", "LAB", "HSV"):  # 4 or 3 channels that are not RGB(A)
+                return np.asarray(image.convert("RGB"))
     except Exception:  # imageio reads it again below and raises what is wrong
         pass
     return np.asarray(iio.imread(path, plugin="pillow"))
