@@ -195,6 +195,8 @@ BAD = {
     "focal negative": (lambda p: _edit(p, _set("fl_x", -3.0)), "frame 1: fl_x must be positive"),
     "angle too wide": (lambda p: _edit(p, lambda m: m.update(camera_angle_x=4.0)), "camera_angle_x must be below a half turn"),
     "latlong": (lambda p: _edit(p, lambda m: m.update(latlong=True)), "lens model with 'latlong' is not supported"),
+    "ftheta at p0 = 0": (lambda p: _edit(p, lambda m: m.update(ftheta_p0=0.0, ftheta_p1=300.0)),
+                         "lens model with 'ftheta_p0' is not supported"),
     "camera model": (lambda p: _edit(p, lambda m: m.update(camera_model="EQUIRECTANGULAR")),
                      "camera_model 'EQUIRECTANGULAR' is not supported (OPENCV, PINHOLE"),
     "k4 perspective": (lambda p: _edit(p, _set("k4", 0.01)), "frame 1: k4 is only used by OPENCV_FISHEYE"),

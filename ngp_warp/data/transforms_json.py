@@ -34,7 +34,8 @@ NGP_OFFSET = (0.5, 0.5, 0.5)
 NGP_SCENE_KEYS = ("aabb_scale", "scale", "offset", "aabb", "contraction")
 MAX_AABB_SCALE = 2**15  # 16 occupancy cascades
 FAR_CAMERA = 1e4  # a camera this many times the median spread from the others is a broken pose
-_UNSUPPORTED_LENS_KEYS = ("ftheta_p0", "latlong", "equirectangular")
+# instant-ngp switches lens on these keys' presence, whatever their values (ftheta_p0 is often 0)
+_UNSUPPORTED_LENS_KEYS = ("ftheta_p0", "ftheta_p1", "ftheta_p2", "ftheta_p3", "ftheta_p4", "latlong", "equirectangular")
 PERSPECTIVE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 FISHEYE_MODEL = "OPENCV_FISHEYE"
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -215,7 +216,7 @@ def _focal(d: dict, width: int, height: int, ref_w: float, ref_h: float, where: 
 def _lens(merged: dict, where: str) -> tuple[bool, list[float]]:
     """(fisheye, [k1, k2, k3, k4, p1, p2]) of a frame's merged camera keys."""
     for key in _UNSUPPORTED_LENS_KEYS:
-        if merged.get(key):
+        if key in merged:
             raise DataError(f"{where}: lens model with '{key}' is not supported (OPENCV and OPENCV_FISHEYE only)")
     model = merged.get("camera_model", FISHEYE_MODEL if merged.get("is_fisheye") else "OPENCV")
     if model not in PERSPECTIVE_MODELS + (FISHEYE_MODEL,):
