@@ -11,7 +11,8 @@ import torch
 
 from ngp_warp.outputs import video_out
 from ngp_warp.outputs.camera_path import (around_cameras, catmull_rom, load_camera_path, matrix_from_quat,
-                                  ngp_transform, orbit_cameras, quat_from_matrix, slerp, spiral_cameras)
+                                  ngp_to_world, ngp_transform, orbit_cameras, quat_from_matrix, slerp,
+                                  spiral_cameras)
 from ngp_warp.data.scene import look_at
 
 
@@ -96,6 +97,18 @@ def test_instant_ngp_base_cam_maps_back_to_world(tmp_path):
     assert (path.width, path.height, path.fps) == (64, 48, 25.0)
     assert len(load_camera_path(tmp_path / "base_cam.json", 64, 48, 30, 25.0, s, o).c2w) == 30
     assert ngp_transform(tmp_path / "nowhere") == (0.33, [0.5, 0.5, 0.5])
+    assert ngp_transform(tmp_path / "transforms.json") == (scale, offset)  # the scene given as its file
+
+
+def test_instant_ngp_map_of_a_path_is_the_one_training_reads(tmp_path):
+    """A scene's ``aabb`` (or a scalar ``offset``) sets the unit-cube map for paths as for training."""
+    (tmp_path / "transforms.json").write_text(json.dumps({"aabb": [[-10, -10, -10], [10, 10, 10]], "frames": []}))
+    scale, offset = ngp_transform(tmp_path)
+    assert scale == pytest.approx(0.05) and offset == pytest.approx([0.5, 0.5, 0.5])
+    position = ngp_to_world(torch.eye(3)[None], torch.tensor([[0.5, 0.5, 1.0]]), scale, offset)[1]
+    assert torch.allclose(position, torch.tensor([[10.0, 0.0, 0.0]], dtype=torch.float64))  # rows cycled
+    (tmp_path / "transforms.json").write_text(json.dumps({"scale": 0.5, "offset": 0.25, "frames": []}))
+    assert ngp_transform(tmp_path) == (0.5, [0.25, 0.25, 0.25])
 
 
 def test_nerfstudio_camera_path(tmp_path):

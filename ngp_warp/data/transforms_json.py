@@ -282,11 +282,10 @@ def frame_camera(frame: Frame, width: int, height: int) -> tuple[list[float], li
     return [focal[0], focal[1], cx, cy], dist, fisheye
 
 
-def world_box(meta: dict, source: Path) -> tuple[list[float], list[float], int, float]:
-    """(field box, finest cascade box, occupancy levels, scale) in the world from instant-ngp's
-    scene keys: ngp = world * scale + offset, the field fills [0.5 -+ aabb_scale / 2]^3 and the
-    finest cascade [0, 1]^3 of that space."""
-    aabb_scale = number(meta, "aabb_scale", str(source), positive=True) if "aabb_scale" in meta else 1.0
+def ngp_scale_offset(meta: dict, source: Path) -> tuple[float, list[float]]:
+    """(scale, offset) of instant-ngp's map ngp = world * scale + offset from a transforms file's
+    ``scale`` and ``offset`` (a number or 3), or its ``aabb`` fitted into the unit cube, else
+    instant-ngp's defaults."""
     scale = number(meta, "scale", str(source), positive=True) if "scale" in meta else NGP_SCALE
     offset = list(NGP_OFFSET)
     if "offset" in meta:
@@ -304,6 +303,15 @@ def world_box(meta: dict, source: Path) -> tuple[list[float], list[float], int, 
             raise DataError(f"{source}: aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]")
         scale = 1.0 / max(float(np.abs(box[1] - box[0]).max()), 1e-6)
         offset = list(0.5 - 0.5 * (box[0] + box[1]) * scale)
+    return scale, offset
+
+
+def world_box(meta: dict, source: Path) -> tuple[list[float], list[float], int, float]:
+    """(field box, finest cascade box, occupancy levels, scale) in the world from instant-ngp's
+    scene keys (:func:`ngp_scale_offset`): the field fills [0.5 -+ aabb_scale / 2]^3 of its unit-cube
+    space and the finest cascade [0, 1]^3."""
+    aabb_scale = number(meta, "aabb_scale", str(source), positive=True) if "aabb_scale" in meta else 1.0
+    scale, offset = ngp_scale_offset(meta, source)
 
     def world(ngp_lo: float, ngp_hi: float) -> list[float]:
         return [(ngp_lo - o) / scale for o in offset] + [(ngp_hi - o) / scale for o in offset]

@@ -15,10 +15,8 @@ from pathlib import Path
 import torch
 
 from ngp_warp.data.data_error import short
-from ngp_warp.data.transforms_json import read_json
+from ngp_warp.data.transforms_json import NGP_OFFSET, NGP_SCALE, ngp_scale_offset, read_json
 
-NGP_DEFAULT_SCALE = 0.33  # instant-ngp's world → unit-cube map when transforms.json has none
-NGP_DEFAULT_OFFSET = (0.5, 0.5, 0.5)
 MAX_FRAMES = 100_000  # a video's frames: nearly an hour at 30 fps
 MAX_SIDE = 16384  # a frame's width and height in pixels
 FPS_RANGE = (0.01, 1000.0)  # a GIF holds a frame at most 655 s
@@ -178,16 +176,16 @@ def nerfstudio_path(meta: dict, where: str) -> CameraPath:
     return CameraPath(m.reshape(-1, 4, 4)[:, :3].float(), _intrinsics_from_fov(fov, width, height), width, height, fps)
 
 
-def ngp_transform(scene_dir: str | Path) -> tuple[float, list[float]]:
-    """(scale, offset) of instant-ngp's map ``ngp = world · scale + offset`` for a scene folder:
-    the ``scale`` and ``offset`` of its transforms.json (or transforms_train.json), else
-    instant-ngp's defaults 0.33 and (0.5, 0.5, 0.5)."""
-    for name in ("transforms.json", "transforms_train.json"):
-        path = Path(scene_dir) / name
+def ngp_transform(scene: str | Path) -> tuple[float, list[float]]:
+    """(scale, offset) of instant-ngp's map ``ngp = world · scale + offset`` for a scene (a
+    transforms file, or a folder with transforms.json or transforms_train.json), as training
+    reads them (:func:`~ngp_warp.data.transforms_json.ngp_scale_offset`: ``scale``, ``offset``
+    or ``aabb``), else instant-ngp's defaults 0.33 and (0.5, 0.5, 0.5)."""
+    scene = Path(scene)
+    for path in [scene] if scene.is_file() else [scene / "transforms.json", scene / "transforms_train.json"]:
         if path.is_file():
-            meta = read_json(path)
-            return float(meta.get("scale", NGP_DEFAULT_SCALE)), [float(v) for v in meta.get("offset", NGP_DEFAULT_OFFSET)]
-    return NGP_DEFAULT_SCALE, list(NGP_DEFAULT_OFFSET)
+            return ngp_scale_offset(read_json(path), path)
+    return NGP_SCALE, list(NGP_OFFSET)
 
 
 def ngp_to_world(rotation: torch.Tensor, position: torch.Tensor, scale: float, offset) -> tuple[torch.Tensor, torch.Tensor]:
@@ -206,7 +204,7 @@ def ngp_to_world(rotation: torch.Tensor, position: torch.Tensor, scale: float, o
 
 
 def instant_ngp_path(meta: dict, where: str, width: int, height: int, n_frames: int, fps: float,
-                     scale: float = NGP_DEFAULT_SCALE, offset=NGP_DEFAULT_OFFSET) -> CameraPath:
+                     scale: float = NGP_SCALE, offset=NGP_OFFSET) -> CameraPath:
     """instant-ngp's ``base_cam.json``: keyframes ``path`` of {``R``: quaternion [x, y, z, w],
     ``T``: position, ``fov``: vertical degrees} in its unit-cube frame (see :func:`ngp_to_world`),
     optionally ``loop``; joined by :func:`catmull_rom` into ``n_frames`` frames."""
@@ -231,7 +229,7 @@ def instant_ngp_path(meta: dict, where: str, width: int, height: int, n_frames: 
 
 
 def load_camera_path(path: str | Path, width: int, height: int, n_frames: int, fps: float,
-                     scale: float = NGP_DEFAULT_SCALE, offset=NGP_DEFAULT_OFFSET) -> CameraPath:
+                     scale: float = NGP_SCALE, offset=NGP_OFFSET) -> CameraPath:
     """Read a nerfstudio ``camera_path.json`` (its own size, fps and frames) or an instant-ngp
     ``base_cam.json`` (``width`` × ``height``, ``n_frames`` at ``fps``, instant-ngp's unit-cube
     map ``scale``/``offset``, see :func:`ngp_transform`). Raises ValueError with one line."""
