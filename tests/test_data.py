@@ -82,6 +82,27 @@ def test_instant_ngp_keys_paths_formats_and_holdout(tmp_path):
     assert scene.near == pytest.approx(0.1 / 0.33, rel=1e-5)
 
 
+def test_nerfstudio_split_lists_choose_the_test_frames(tmp_path, caplog):
+    meta, _ = instant_ngp(tmp_path, n=7, size=(8, 6))
+    names = [f"images/{i:04d}." + ("jpg" if i % 3 == 2 else "png") for i in range(7)]
+    write_json(tmp_path / "transforms.json", {**meta, "val_filenames": [names[5], "./" + names[6]]})
+    scene = load_scene(tmp_path)
+    assert not scene.test_is_heldout
+    assert [Path(n).stem for n in scene.test.names] == ["0005", "0006"] and len(scene.train) == 5
+    listed = {**meta, "train_filenames": names[:3], "val_filenames": names[5:], "test_filenames": [names[4]]}
+    write_json(tmp_path / "transforms.json", listed)  # test_filenames first; frame 3 in neither list
+    scene = load_scene(tmp_path)
+    assert [Path(n).stem for n in scene.test.names] == ["0004"]
+    assert [Path(n).stem for n in scene.train.names] == ["0000", "0001", "0002"]
+    write_json(tmp_path / "transforms.json", {**meta, "test_filenames": ["images/nope.png"]})
+    with pytest.raises(DataError, match="none of the 1 files test_filenames names is among the frames"):
+        load_scene(tmp_path)
+    write_json(tmp_path / "transforms.json", {**meta, "test_filenames": names[1:2], "train_filenames": names[:3]})
+    with caplog.at_level(logging.WARNING):
+        load_scene(tmp_path)
+    assert "1 of the 1 frames test_filenames names are in train_filenames too" in caplog.text
+
+
 def test_instant_ngp_scale_offset_and_aabb_key(tmp_path):
     instant_ngp(tmp_path, n=3, aabb_scale=16, scale=0.5, offset=[0.5, 0.25, 1.0])
     scene = load_scene(tmp_path)

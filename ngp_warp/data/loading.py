@@ -30,7 +30,7 @@ from ngp_warp.data.colmap import colmap_to_transforms, read_colmap_model
 from ngp_warp.data.data_error import DataError, short
 from ngp_warp.data.images import downscale_image, load_images, load_masks
 from ngp_warp.data.transforms_json import (NGP_SCENE_KEYS, Frame, check_pose_set, contraction_key, declared_size, frame_camera, log,
-                                      read_frames, read_json, world_box, world_from_scene)
+                                      named_split, read_frames, read_json, world_box, world_from_scene)
 
 __all__ = ["DataError", "Split", "Scene", "load_scene", "generate_rays", "image_rays", "downscale_image",
            "normalisation_record", "write_normalisation"]
@@ -266,8 +266,9 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
         downscale: integer factor; images are area-averaged over n x n blocks (cropped to a
             multiple of n) and the intrinsics divided by n. A COLMAP folder's ``images_n/``,
             when there, is read as it is instead.
-        holdout_every: without a test split, frames 0, k, 2k, ... (sorted by file name) become
-            the test split and leave training.
+        holdout_every: without a test split (a transforms_test.json, or nerfstudio's
+            ``test_filenames`` / ``val_filenames`` lists), frames 0, k, 2k, ... (sorted by file
+            name) become the test split and leave training.
 
     Returns:
         The :class:`Scene`; images stay uint8 on the CPU.
@@ -283,8 +284,11 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
     sources, kind, downscale = scene_sources(path, downscale)
     metas = [meta for meta, _, _ in sources]
     train = read_frames(*sources[0])
+    named = None if len(sources) > 1 else named_split(metas[0], train, sources[0][1], sources[0][2])
     if len(sources) > 1:
         test = read_frames(*sources[1])
+    elif named is not None:  # nerfstudio's test_filenames / val_filenames (and train_filenames)
+        train, test = named
     else:
         if len(train) < 2:
             raise DataError(f"{sources[0][1]}: only 1 frame; at least 2 are needed to hold out test frames")
@@ -307,7 +311,7 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
     return Scene(
         train=_split(train, images[:n], sizes[:n], downscale, load_masks(train, sizes[:n], downscale)),
         test=_split(test, images[n:], sizes[n:], downscale),
-        test_is_heldout=len(sources) == 1,
+        test_is_heldout=len(sources) == 1 and named is None,
         aabb=torch.tensor(aabb, dtype=torch.float32),
         occupancy_levels=levels,
         near=round(NEAR_IN_UNIT_CUBE / scale, 6),

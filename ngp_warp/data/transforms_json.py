@@ -191,6 +191,35 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
     return sorted(out, key=lambda f: _natural_key(str(f.image)))
 
 
+def named_split(meta: dict, frames: list[Frame], source: Path, base: Path) -> tuple[list[Frame], list[Frame]] | None:
+    """nerfstudio's split lists: (train, test) of ``frames``, test the frames whose files
+    ``test_filenames`` (else ``val_filenames``) names, train those ``train_filenames`` names
+    (else every other frame); None when the file has neither test nor val list."""
+    key = "test_filenames" if "test_filenames" in meta else "val_filenames" if "val_filenames" in meta else None
+    if key is None:
+        return None
+
+    def images(name: str) -> set[Path]:
+        listed = meta[name]
+        if not isinstance(listed, list) or not all(isinstance(x, str) and x for x in listed):
+            raise DataError(f"{source}: {name} must be a list of file names")
+        return {image_path(base, x, f"{source} {name}").resolve() for x in listed}
+
+    held = images(key)
+    test = [f for f in frames if f.image.resolve() in held]
+    if not test:
+        raise DataError(f"{source}: none of the {len(held)} files {key} names is among the frames with an image")
+    kept = images("train_filenames") if "train_filenames" in meta else None
+    train = [f for f in frames if (f.image.resolve() in kept if kept is not None else f.image.resolve() not in held)]
+    if not train:
+        raise DataError(f"{source}: no frame left to train on after {key}")
+    both = sum(f.image.resolve() in held for f in train)
+    if both:
+        log.warning(f"ngp-warp: {source}: {both} of the {len(test)} frames {key} names are in train_filenames "
+                    "too: they are trained on and scored")
+    return train, test
+
+
 def _focal(d: dict, width: int, height: int, ref_w: float, ref_h: float, where: str) -> tuple[float, float] | None:
     """(fx, fy) in pixels of the image from one level of keys, or None when it has none.
     Precedence as instant-ngp: x_fov (degrees) > fl_x (pixels at w) > camera_angle_x (radians);
