@@ -139,20 +139,17 @@ def _(sigmas, rgbs, t_starts, t_ends, ray_offsets, early_stop_eps):
 @torch.library.custom_op("ngp_warp::composite_backward", mutates_args=())
 def _composite_backward_op(sigmas: torch.Tensor, rgbs: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
                            ray_offsets: torch.Tensor, trans: torch.Tensor, g_rgb: torch.Tensor,
-                           g_opacity: torch.Tensor, g_depth: torch.Tensor, g_weights: torch.Tensor,
-                           interval_grads: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """As :func:`launch_backward`; without ``interval_grads`` the intervals' gradients are
-    empty tensors (an op returns tensors), which autograd drops as the intervals need none."""
-    grads = launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights,
-                            interval_grads)
-    return *grads[:2], *(g if g is not None else t.new_empty(0) for g, t in zip(grads[2:], (t_starts, t_ends)))
+                           g_opacity: torch.Tensor, g_depth: torch.Tensor,
+                           g_weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """As :func:`launch_backward`, the intervals' gradients always computed (an op's schema takes
+    no flag that inductor's generated backward keeps; autograd drops what is not needed)."""
+    return launch_backward(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights,
+                           interval_grads=True)
 
 
 @_composite_backward_op.register_fake
-def _(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights, interval_grads):
-    intervals = (torch.empty_like(t_starts), torch.empty_like(t_ends)) if interval_grads else \
-        (t_starts.new_empty(0), t_ends.new_empty(0))
-    return torch.empty_like(sigmas), torch.empty_like(rgbs), *intervals
+def _(sigmas, rgbs, t_starts, t_ends, ray_offsets, trans, g_rgb, g_opacity, g_depth, g_weights):
+    return torch.empty_like(sigmas), torch.empty_like(rgbs), torch.empty_like(t_starts), torch.empty_like(t_ends)
 
 
 def _save_inputs(ctx, inputs, output):
@@ -160,9 +157,7 @@ def _save_inputs(ctx, inputs, output):
 
 
 def _composite_op_backward(ctx, g_rgb, g_opacity, g_depth, g_weights, _g_trans):
-    intervals = any(ctx.needs_input_grad[2:4])
-    grads = _composite_backward_op(*ctx.saved_tensors, g_rgb, g_opacity, g_depth, g_weights, intervals)
-    return *grads[:2], *(grads[2:] if intervals else (None, None)), None, None
+    return *_composite_backward_op(*ctx.saved_tensors, g_rgb, g_opacity, g_depth, g_weights), None, None
 
 
 def _refuse(ctx, *_):
