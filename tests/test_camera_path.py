@@ -132,6 +132,10 @@ def test_nerfstudio_camera_path(tmp_path):
     ('{"path": [{"R": [0, 0, 0, 1], "T": [0, 0, 0], "fov": 190}]}', "fov"),
     ('{"camera_type": "equirectangular", "camera_path": [{"fov": 50}]}', "camera_type 'equirectangular': only perspective"),
     ('{"camera_type": "fisheye", "camera_path": [{"fov": 50}]}', "camera_type 'fisheye': only perspective"),
+    ('{"render_height": 9, "camera_path": [{"fov": 50, "aspect": 1, "camera_to_world": '
+     '[2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 1]}]}', "camera 0's camera_to_world is not a rigid camera pose"),
+    ('{"render_height": 9, "camera_path": [{"fov": 50, "aspect": 1, "camera_to_world": '
+     '[1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 1, 1]}]}', "camera 0's camera_to_world is not a rigid camera pose"),
 ])
 def test_bad_path_files_are_one_line_errors(tmp_path, text, message):
     (tmp_path / "p.json").write_text(text)

@@ -171,9 +171,17 @@ def nerfstudio_path(meta: dict, where: str) -> CameraPath:
         raise ValueError(f"{where}: not a nerfstudio camera path ({type(e).__name__}: {e})") from None
     if m.shape[1:] != (16,) or not torch.isfinite(m).all():
         raise ValueError(f"{where}: camera_to_world must hold 16 finite numbers per camera")
+    m = m.reshape(-1, 4, 4)
+    rotation = m[:, :3, :3]
+    error = (rotation.transpose(1, 2) @ rotation - torch.eye(3, dtype=torch.float64)).abs().amax((1, 2))
+    bottom = (m[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)).abs().amax(1)
+    if (error > 0.02).any() or (bottom > 1e-6).any():  # as training's poses: a rigid pose, row 4 = 0 0 0 1
+        k = int(torch.nonzero((error > 0.02) | (bottom > 1e-6))[0])
+        raise ValueError(f"{where}: camera {k}'s camera_to_world is not a rigid camera pose (orthonormal "
+                         f"rotation, bottom row 0 0 0 1)")
     if not (width > 0 and height > 0 and fps > 0 and ((fov > 0) & (fov < 180)).all()):
         raise ValueError(f"{where}: render size, fps and fov must be positive (fov under 180 degrees)")
-    return CameraPath(m.reshape(-1, 4, 4)[:, :3].float(), _intrinsics_from_fov(fov, width, height), width, height, fps)
+    return CameraPath(m[:, :3].float(), _intrinsics_from_fov(fov, width, height), width, height, fps)
 
 
 def ngp_transform(scene: str | Path) -> tuple[float, list[float]]:
