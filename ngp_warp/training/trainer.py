@@ -312,11 +312,17 @@ class Trainer:
         (loss, mse), of = self._readout.read(), self._readout_of
         if not math.isfinite(loss):
             raise TrainingDiverged(f"training diverged: the loss is {loss} at step {of['step']} (try a lower lr)")
-        psnr = -10.0 * math.log10(max(mse, 1e-10))
-        self.curve.append((of["step"], of["seconds"], loss, psnr, of["rays"], of["samples"]))
+        psnr = self.record_readout(of["step"], of["seconds"], loss, mse, of["rays"], of["samples"])
         if bar is not None:
             bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}", rays=of["rays"], samples=of["samples"],
                             refresh=False)
+
+    def record_readout(self, step: int, seconds: float, loss: float, mse: float, rays: int, samples: int) -> float:
+        """Keep one readout (a step's loss and mse read on the host) as a row of :attr:`curve`;
+        returns its training PSNR."""
+        psnr = -10.0 * math.log10(max(mse, 1e-10))
+        self.curve.append((step, seconds, loss, psnr, rays, samples))
+        return psnr
 
     # -- inference -------------------------------------------------------------------------
     @property

@@ -203,10 +203,11 @@ class Viewer:
         progress = max(t.step_count / steps if steps else 0.0, t.train_seconds / seconds if seconds else 0.0)
         stats = t.step(progress)
         if t.step_count % 10 == 0:  # a readout, kept in the trainer's curve as train's are
-            loss, psnr = float(stats["loss"]), -10 * math.log10(max(float(stats["mse"]), 1e-10))
+            loss = float(stats["loss"])
+            psnr = t.record_readout(t.step_count, t.train_seconds, loss, float(stats["mse"]), int(stats["rays"]),
+                                    int(stats["samples"]))
             self.stats = {"step": t.step_count, "loss": loss, "psnr": psnr}
             self.status.content = self._status_text()
-            t.curve.append((t.step_count, t.train_seconds, loss, psnr, int(stats["rays"]), int(stats["samples"])))
         return True
 
     def serve(self, stop: threading.Event | None = None) -> None:
