@@ -63,7 +63,7 @@ def live_run_folder(args):
     """The :class:`RunFolder` of ``--out`` for a scene trained live (None without ``--out``);
     one-line errors, before anything trains, where the folder cannot take the run. Nothing is
     created until the run is saved."""
-    from ngp_warp.training.run_folder import RunFolder, RunFolderError
+    from ngp_warp.training.run_folder import RunFolder
 
     if args.out is None:
         if args.overwrite:
@@ -71,10 +71,7 @@ def live_run_folder(args):
         return None
     out = Path(args.out)
     check_run_apart(out, Path(args.target))
-    try:
-        folder = RunFolder(out, overwrite=args.overwrite, flags=(None, "--overwrite"))
-    except RunFolderError as e:
-        raise UserError(str(e)) from None
+    folder = RunFolder(out, overwrite=args.overwrite, flags=(None, "--overwrite"))  # main reports its errors
     existing = next(p for p in (out, *out.absolute().parents) if p.exists())
     if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
         raise UserError(f"--out {out}: cannot write there ({existing} is not a writable folder)")
