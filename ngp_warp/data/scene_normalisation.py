@@ -11,8 +11,9 @@ import math
 
 import numpy as np
 
+from ngp_warp.data.transforms_json import NGP_SCALE  # instant-ngp's world -> unit-cube scale
+
 CAMERA_RADIUS = 4.0  # mean camera distance from the centre, scene units ("NeRF sized")
-NGP_SCALE = 0.33  # instant-ngp's world -> unit-cube scale
 POINT_QUANTILE = 0.99  # the field's box holds this share of the sparse points (far outliers left out)
 MAX_AABB_SCALE = 128  # instant-ngp's largest
 MIN_SPREAD = 0.01  # smallest eigenvalue of mean(I - f f^T) for the cameras' focus to be trusted (~6 degrees)
