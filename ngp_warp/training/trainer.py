@@ -9,7 +9,6 @@ renderer (:mod:`ngp_warp.outputs.renderer`).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -91,8 +90,7 @@ class Trainer:
         self.shared_clock: Callable[[int], float] | None = None  # step → training seconds all ranks agree on
         self.phases = StepPhases(
             sample_batch=self.sample_batch, render=self._render_batch,
-            grid_update=functools.partial(self.grid.update, occ_threshold=cfg.occupancy_threshold,
-                                          ema_decay=cfg.occupancy_decay),
+            grid_update=self._grid_update,
             density=self.training_field.density, field=self.training_field,
             optimizer_update=self.weights.flush, loss=ray_loss, distortion=distortion_loss_packed,
             backward=backward)
@@ -154,6 +152,12 @@ class Trainer:
             environment = self.field.environment is not None
             background = self.field.background(rays_d[::sub * sub]) if environment else background.zero_()
         return rays_o, rays_d, b.target, background
+
+    def _grid_update(self, step: int, density_fn) -> bool:
+        # threshold 0 while the grid is open: every visible cell (σ > 0) is occupied
+        cfg = self.config
+        threshold = 0.0 if step < cfg.occupancy_open_steps else cfg.occupancy_threshold
+        return self.grid.update(step, density_fn, occ_threshold=threshold, ema_decay=cfg.occupancy_decay)
 
     def _density_for_grid(self, x: torch.Tensor) -> torch.Tensor:
         # The grid stores optical thickness of one step, as instant-ngp and nerfacc do. Its
