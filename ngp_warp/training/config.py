@@ -105,6 +105,8 @@ class TrainConfig:
                                      "near_gradient_distance"),
                        optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold",
                                  "distortion_weight", "near"))
+        if type(self.occupancy_open_steps) is not int or self.occupancy_open_steps < 0:
+            raise ValueError(f"occupancy_open_steps must be an integer ≥ 0, got {self.occupancy_open_steps!r}")
         if self.contraction_fit == PROBE_FIT and self.contraction != "auto":
             raise ValueError(f"contraction_fit 'probe' decides whether to contract: leave contraction at auto "
                              f"(got {self.contraction!r}), or give contraction_fit cameras or seen")
@@ -127,6 +129,8 @@ class TrainConfig:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
         if type(self.backdrop_alpha) is not bool:
             raise ValueError(f"backdrop_alpha must be true or false, got {self.backdrop_alpha!r}")
+        if type(self.grid_seen_only) is not bool:
+            raise ValueError(f"grid_seen_only must be true or false, got {self.grid_seen_only!r}")
         if type(self.camera_refinement) is not bool:
             raise ValueError(f"camera_refinement must be true or false, got {self.camera_refinement!r}")
         if type(self.seed) is not int or not 0 <= self.seed < 2**63:
