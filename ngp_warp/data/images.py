@@ -13,6 +13,7 @@ import numpy as np
 from PIL import Image
 
 from ngp_warp.data.data_error import DataError
+from ngp_warp.data.ngp_frames import with_transparency
 from ngp_warp.data.transforms_json import Frame, log
 
 PLAIN_MODES = ("RGB", "RGBA", "L", "LA")  # Pillow's 8-bit modes, whose pixels need no conversion
@@ -82,7 +83,7 @@ def downscale_image(a: np.ndarray, n: int) -> np.ndarray:
 def load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
     """Read, check and downscale every frame's image -> ([N, h, w, C] uint8, original (W, H)s)."""
     def load(frame: Frame):
-        a = read_image(frame.image)
+        a = with_transparency(read_image(frame.image), frame.transparent)
         if a.shape[0] < downscale or a.shape[1] < downscale:
             raise DataError(f"{frame.image}: image is {a.shape[1]}x{a.shape[0]}, smaller than downscale {downscale}")
         return (a.shape[1], a.shape[0]), downscale_image(a, downscale)

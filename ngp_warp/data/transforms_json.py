@@ -13,6 +13,8 @@
   field should contract space around ``aabb`` (:func:`contraction_key`).
 
 Frames whose image is missing are skipped, as instant-ngp does, with one warning per file.
+instant-ngp's keys that choose frames or change pixels (``n_frames``, sharpness, transparent
+white or black) and those read past with a warning: :mod:`ngp_warp.data.ngp_frames`.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ngp_warp.data.data_error import DataError, number, short
+from ngp_warp.data.ngp_frames import chosen_frames, transparent_colour, warn_ignored
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 NGP_SCALE = 0.33  # instant-ngp's default world -> unit-cube scale (NERF_SCALE)
@@ -57,6 +60,7 @@ class Frame:
     camera: list[dict]
     mask: Path | None = None
     mask_marks_out: bool = False
+    transparent: tuple[int, ...] = ()  # colour values whose pixels are transparent (white_transparent ...)
 
 
 def read_json(path: Path) -> dict:
@@ -147,7 +151,7 @@ def image_path(base: Path, file_path, where: str) -> Path:
 
 
 def _camera_keys(d: dict) -> dict:
-    return {k: v for k, v in d.items() if k not in ("frames", "file_path", "transform_matrix")}
+    return {k: v for k, v in d.items() if k not in ("frames", "file_path", "transform_matrix", "transform_matrix_start")}
 
 
 def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
@@ -159,15 +163,18 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
         raise DataError(f"{source}: no 'frames' list")
     if not frames:
         raise DataError(f"{source}: no frames")
-    top, out, missing = _camera_keys(meta), [], []
+    frames = chosen_frames(meta, frames, source)
+    warn_ignored(meta, frames, source, base)
+    top, out, missing, transparent = _camera_keys(meta), [], [], transparent_colour(meta, source)
     for i, frame in enumerate(frames):
         where = f"{source} frame {i}"
         if not isinstance(frame, dict):
             raise DataError(f"{where}: expected an object, got {short(frame)}")
-        for key in ("file_path", "transform_matrix"):
+        pose = "transform_matrix_start" if "transform_matrix_start" in frame else "transform_matrix"
+        for key in ("file_path", pose):
             if key not in frame:
                 raise DataError(f"{where}: missing {key}")
-        c2w = _matrix(frame["transform_matrix"], where)[:3]
+        c2w = _matrix(frame[pose], where)[:3]
         _check_rigid(c2w, where)
         image = image_path(base, frame["file_path"], where)
         mask = frame.get("mask_path")
@@ -182,7 +189,8 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
                 raise DataError(f"{where}: mask_path {mask}: no such file")
         dynamic = image.with_name(f"dynamic_mask_{image.stem}.png")
         marks_out = mask is None and dynamic.is_file()
-        out.append(Frame(where, image, c2w, [top, _camera_keys(frame)], dynamic if marks_out else mask, marks_out))
+        out.append(Frame(where, image, c2w, [top, _camera_keys(frame)], dynamic if marks_out else mask, marks_out,
+                         transparent))
     if not out:
         raise DataError(f"{source}: none of the {len(frames)} frames has its image (first missing: {missing[0]})")
     if missing:
