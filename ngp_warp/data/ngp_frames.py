@@ -27,7 +27,7 @@ from ngp_warp.data.data_error import DataError, number, short
 
 NEIGHBOURS_BEFORE, NEIGHBOURS_AFTER = 3, 2  # instant-ngp's sharpness window: frames i - 3 .. i + 2
 TRANSPARENT_KEYS = {"white_transparent": 255, "black_transparent": 0}  # key -> the colour made transparent
-log = logging.getLogger("ngp_warp.data")
+log = logging.getLogger("ngp_warp.data.loading")  # the loader's messages, as transforms_json's
 
 
 def _path_key(frame: dict) -> str:
@@ -59,7 +59,7 @@ def chosen_frames(meta: dict, frames: list, source: Path) -> list:
             kept.append(frame)
     dropped = len(ordered) - len(kept)
     if dropped:
-        log.info(f"ngp-warp: {source}: left out {dropped} of {len(ordered)} frames blurrier than "
+        log.warning(f"ngp-warp: {source}: left out {dropped} of {len(ordered)} frames blurrier than "
                  f"{threshold:g} of their neighbours' mean sharpness (sharpness_discard_threshold)")
     if not kept:
         raise DataError(f"{source}: sharpness_discard_threshold {threshold:g} leaves no frame")
