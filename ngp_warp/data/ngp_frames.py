@@ -51,7 +51,8 @@ def chosen_frames(meta: dict, frames: list, source: Path) -> list:
         ordered = ordered[:cut]
     if not sharp:
         return ordered
-    values = [number(f, "sharpness", f"{source} {_path_key(f)}") if "sharpness" in f else 1.0 for f in ordered]
+    values = [number(f, "sharpness", f"{source} {_path_key(f)}") if isinstance(f, dict) and "sharpness" in f else 1.0
+              for f in ordered]
     kept = []
     for i, frame in enumerate(ordered):
         window = values[max(0, i - NEIGHBOURS_BEFORE):min(i + NEIGHBOURS_AFTER + 1, len(ordered) - 1)]
