@@ -106,12 +106,13 @@ def test_the_probe_counts_every_points_density_and_the_run_keeps_grid_seen_only(
     made = []
 
     def make_trainer(scene, config, device):
-        made.append(config.grid_seen_only)
+        made.append((config.grid_seen_only, config.occupancy_open_steps))
         return Trainer(scene, config, device)
 
-    trainer, seen = probe.probed_trainer(sky, small(steps=8, contraction_fit="probe", grid_seen_only=True), "cpu",
-                                         make_trainer=make_trainer)
-    assert seen.steps == 4 and made == [False, True] and trainer.grid._seen_frame is not None
+    asked = small(steps=8, contraction_fit="probe", grid_seen_only=True, occupancy_open_steps=6)
+    trainer, seen = probe.probed_trainer(sky, asked, "cpu", make_trainer=make_trainer)
+    # the probe's grid culls as its score was set on; the run keeps what was asked
+    assert seen.steps == 4 and made == [(False, 0), (True, 6)] and trainer.grid._seen_frame is not None
 
 
 @pytest.mark.parametrize("score, steps, chosen", [(-1.0, 10, "bounded"), (3.0, 20, "cameras")])

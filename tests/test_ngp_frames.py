@@ -22,11 +22,28 @@ def _rewrite(root, meta):
     return load_scene(root / "transforms.json", holdout_every=100)
 
 
-def test_n_frames_keeps_the_first_frames_in_path_order(tmp_path):
-    meta, _ = instant_ngp(tmp_path, n=7)
-    meta["frames"] = meta["frames"][::-1]  # the file's order is not the path order
-    assert _names(_rewrite(tmp_path, {**meta, "n_frames": 4})) == ["0000", "0001", "0002", "0003"]
-    assert len(_names(_rewrite(tmp_path, {**meta, "n_frames": 50}))) == 7
+def _renamed(root, meta, names):
+    """``meta`` with its frames' images renamed to ``names`` (unpadded numbers: natural order
+    differs from the strings' order), the frames listed in reverse."""
+    for frame, name in zip(meta["frames"], names):
+        old = next((root / "images").glob(frame["file_path"].split("/")[-1].split(".")[0] + ".*"))
+        new = root / "images" / (name + old.suffix)
+        old.rename(new)
+        frame["file_path"] = f"images/{new.name}"
+    meta["frames"] = meta["frames"][::-1]
+    return meta
+
+
+def _stems(scene):
+    return sorted((p.split("/")[-1].split(".")[0] for p in (*scene.train.names, *scene.test.names)),
+                  key=lambda n: int(n[3:]))
+
+
+def test_n_frames_keeps_the_first_frames_in_natural_path_order(tmp_path):
+    meta, _ = instant_ngp(tmp_path, n=12)
+    meta = _renamed(tmp_path, meta, [f"img{i}" for i in range(12)])
+    assert _stems(_rewrite(tmp_path, {**meta, "n_frames": 3})) == ["img0", "img1", "img2"]  # not img10, img11
+    assert len(_names(_rewrite(tmp_path, {**meta, "n_frames": 50}))) == 12
     for bad in (0, 2.5, "3", True):
         with pytest.raises(DataError, match="n_frames must be a positive integer"):
             _rewrite(tmp_path, {**meta, "n_frames": bad})
@@ -44,17 +61,32 @@ def _instant_ngp_sharpness_filter(values, threshold):
 
 
 def test_blurrier_frames_than_their_neighbours_are_left_out(tmp_path):
-    meta, _ = instant_ngp(tmp_path, n=9)
-    sharpness = [30.0, 31.0, 9.0, 29.0, 33.0, 12.0, 30.0, 28.0, 10.0]
-    for frame, s in zip(meta["frames"], sharpness):
-        frame["sharpness"] = s
-    assert len(_names(_rewrite(tmp_path, meta))) == 9  # no threshold: every frame (instant-ngp's 0)
-    for threshold in (0.5, 0.9):
-        expected = [f"{i:04d}" for i in _instant_ngp_sharpness_filter(sharpness, threshold)]
-        assert _names(_rewrite(tmp_path, {**meta, "sharpness_discard_threshold": threshold})) == expected
-    assert len(expected) < 9
-    with pytest.raises(DataError, match="leaves no frame"):
+    meta, _ = instant_ngp(tmp_path, n=12)
+    meta = _renamed(tmp_path, meta, [f"img{i}" for i in range(12)])
+    # by natural order img0 .. img11; the window's shape (3 before, 2 after, the last frame's
+    # without itself) decides frames 6, 10 and 11
+    sharpness = [30.0, 31.0, 9.0, 29.0, 33.0, 30.0, 14.0, 30.0, 28.0, 200.0, 55.0, 45.0]
+    by_name = {f"img{i}": s for i, s in enumerate(sharpness)}
+    for frame in meta["frames"]:
+        frame["sharpness"] = by_name[frame["file_path"].split("/")[-1].split(".")[0]]
+    assert len(_names(_rewrite(tmp_path, meta))) == 12  # threshold 0: every frame sharper than 0
+    kept = {}
+    for threshold in (0.5, 0.6):
+        kept[threshold] = [f"img{i}" for i in _instant_ngp_sharpness_filter(sharpness, threshold)]
+        assert _stems(_rewrite(tmp_path, {**meta, "sharpness_discard_threshold": threshold})) == kept[threshold]
+    assert kept[0.5] != kept[0.6] and len(kept[0.6]) < 12
+    meta["frames"][0]["sharpness"] = 0.0  # instant-ngp's threshold 0 still drops a frame of sharpness 0
+    assert len(_names(_rewrite(tmp_path, meta))) == 11
+    with pytest.raises(DataError, match="no frame is sharper"):
         _rewrite(tmp_path, {**meta, "sharpness_discard_threshold": 100.0})
+
+
+def test_sharpness_counts_only_when_the_first_frame_in_order_has_it(tmp_path):
+    meta, _ = instant_ngp(tmp_path, n=4)
+    for frame in meta["frames"]:
+        del frame["sharpness"]
+    meta["frames"][3]["sharpness"] = 0.0  # the last by name: instant-ngp never looks at it
+    assert len(_names(_rewrite(tmp_path, {**meta, "sharpness_discard_threshold": 0.5}))) == 4
 
 
 @pytest.mark.parametrize("key, value", [("white_transparent", 255), ("black_transparent", 0)])
@@ -79,6 +111,14 @@ def test_white_or_black_pixels_become_transparent(tmp_path, key, value):
         _rewrite(tmp_path, {**meta, key: "yes"})
 
 
+def test_messages_name_the_files_own_frame_number(tmp_path):
+    meta, _ = instant_ngp(tmp_path, n=5)
+    meta["frames"] = meta["frames"][::-1]  # file frame 0 is the last by name
+    del meta["frames"][0]["transform_matrix"]
+    with pytest.raises(DataError, match="frame 0: missing transform_matrix"):
+        _rewrite(tmp_path, {**meta, "n_frames": 5})
+
+
 def test_a_moving_frame_takes_its_start_pose(tmp_path):
     meta, _ = instant_ngp(tmp_path, n=3)
     start = random_c2w(np.random.default_rng(5))
@@ -91,13 +131,15 @@ def test_a_moving_frame_takes_its_start_pose(tmp_path):
 
 def test_keys_read_past_are_named_in_one_warning(tmp_path, caplog):
     meta, _ = instant_ngp(tmp_path, n=3)
+    meta["frames"][1]["transform_matrix_start"] = meta["frames"][1]["transform_matrix"]  # a start pose alone: applied
     with caplog.at_level(logging.WARNING):
         _rewrite(tmp_path, meta)
     assert "does not apply" not in caplog.text
     meta = {**meta, "rolling_shutter": [0.0, 0.01, 0.0, 0.0], "sharpen": 0.5, "envmap": "sky.exr",
             "integer_depth_scale": 0.001}
     meta["frames"][0]["depth_path"] = "depth/0000.png"
-    iio.imwrite(tmp_path / "images/0001.png.alpha.png", np.zeros((6, 8, 3), np.uint8))
+    alpha = tmp_path / "images/0000.alpha.png"  # frame 0's file_path leaves out its image's extension
+    iio.imwrite(alpha, np.zeros((6, 8, 3), np.uint8))
     caplog.clear()
     with caplog.at_level(logging.WARNING):
         _rewrite(tmp_path, meta)
@@ -108,7 +150,7 @@ def test_keys_read_past_are_named_in_one_warning(tmp_path, caplog):
     caplog.clear()
     quiet = {**meta, "rolling_shutter": [0, 0, 0, 0], "sharpen": 0, "integer_depth_scale": 0}
     del quiet["envmap"]
-    (tmp_path / "images/0001.png.alpha.png").unlink()
+    alpha.unlink()
     with caplog.at_level(logging.WARNING):
         _rewrite(tmp_path, quiet)  # zeros and a depth scale of 0 change nothing
     assert "does not apply" not in caplog.text

@@ -31,7 +31,7 @@ def _varied(points: torch.Tensor) -> torch.Tensor:
     return torch.exp(4.0 * torch.sin(3.0 * points).sum(-1))
 
 
-@pytest.mark.parametrize("open_steps", [0, 32])
+@pytest.mark.parametrize("open_steps", [0, 16, 32])  # 16: the refresh at step 16 is past the open steps
 def test_the_grid_culls_no_visible_cell_while_open(tmp_path, open_steps):
     trainer = _trainer(tmp_path / "scene", open_steps)
     visible = (trainer.grid.occs >= 0).reshape(-1)

@@ -63,6 +63,21 @@ def test_refined_poses_reload_in_place_of_the_trained_ones(tmp_path, kind):
                                          "transforms.json" if kind == "instant-ngp" else "0")
 
 
+def test_a_refined_start_pose_replaces_the_frames_start_and_end(tmp_path):
+    scene = write_scene("instant-ngp", tmp_path / "scene")
+    meta = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    for frame in meta["frames"]:  # instant-ngp reads a start pose before transform_matrix
+        frame["transform_matrix_start"] = frame["transform_matrix"]
+        frame["transform_matrix_end"] = frame.pop("transform_matrix")
+    (tmp_path / "scene" / "transforms.json").write_text(json.dumps(meta))
+    refined = knocked(scene.train.c2w, seed=2)
+    written = refined_transforms(tmp_path / "scene", 1, scene.train.names, refined)
+    (tmp_path / REFINED_TRANSFORMS).write_text(json.dumps(written))
+    again = cameras_by_image(load_scene(tmp_path / REFINED_TRANSFORMS))
+    for name, c2w in zip(scene.train.names, refined):
+        torch.testing.assert_close(again[name][0].double(), c2w, rtol=0, atol=1e-6)
+
+
 def test_refuses_poses_that_do_not_fit_the_file(tmp_path):
     scene = write_scene("instant-ngp", tmp_path / "scene")
     refined = knocked(scene.train.c2w, seed=2)

@@ -1,24 +1,27 @@
 """instant-ngp's ``transforms.json`` keys that choose the frames or change the pixels, as its loader
 (``nerf_loader.cu``) applies them, and the ones ngp-warp reads past without applying.
 
-* ``n_frames``: only the first n frames, in ``file_path`` order (instant-ngp sorts the frames by
-  their path string, then cuts).
-* ``sharpness_discard_threshold`` with a per-frame ``sharpness`` (colmap2nerf writes it; the
-  threshold is 0 unless given): a frame stays only if its sharpness exceeds the threshold times
-  the mean over its neighbourhood in that order, frames ``i - 3`` up to ``i + 2`` (instant-ngp's
-  window, cut at the ends; the last frame's leaves itself out).
+* ``n_frames``: only the first n frames, in natural order of ``file_path`` (numbers in names by
+  value: instant-ngp sorts the frames so, then cuts).
+* A per-frame ``sharpness`` (colmap2nerf writes it) on the first frame in that order: a frame
+  stays only if its sharpness exceeds ``sharpness_discard_threshold`` (0 unless given, which
+  drops only frames of sharpness 0 or less) times the mean over its neighbourhood in that
+  order, frames ``i - 3`` up to ``i + 2`` (instant-ngp's window, cut at the ends; the last
+  frame's leaves itself out; a lone frame stays).
 * ``white_transparent`` / ``black_transparent``: pixels whose three colour channels are all 255
   (all 0) are transparent (alpha 0), as though the images had an alpha channel that says so.
+* A frame's ``transform_matrix_start`` is its pose, as in instant-ngp.
 * Read past with one warning, so that a capture that relies on them does not train silently
-  without them: ``rolling_shutter`` (non-zero), a frame's ``transform_matrix_start`` and
-  ``transform_matrix_end`` (the camera's motion during the exposure: the start pose is used, as
-  instant-ngp's first pose), ``sharpen`` (non-zero), ``depth_path`` with an
-  ``integer_depth_scale`` (depth supervision), ``envmap`` and ``<file_path>.alpha.<ext>`` images.
+  without them: ``rolling_shutter`` (non-zero: the rolling shutter and the motion blur toward a
+  frame's ``transform_matrix_end``), ``sharpen`` (non-zero), ``depth_path`` with an
+  ``integer_depth_scale`` (depth supervision), ``envmap`` and ``<file_path>.alpha.<image's
+  extension>`` images.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -30,41 +33,52 @@ TRANSPARENT_KEYS = {"white_transparent": 255, "black_transparent": 0}  # key -> 
 log = logging.getLogger("ngp_warp.data.loading")  # the loader's messages, as transforms_json's
 
 
-def _path_key(frame: dict) -> str:
-    path = frame.get("file_path")
-    return path.replace("\\", "/") if isinstance(path, str) else ""
+def natural_key(s: str) -> list:
+    """Sort key: numbers in ``s`` compare by value ("img2" before "img10"), letters without case."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", s)]
 
 
-def chosen_frames(meta: dict, frames: list, source: Path) -> list:
-    """``frames`` (the file's list) cut to ``n_frames`` and thinned by sharpness, as instant-ngp
-    (module docstring); the list itself where the file has neither. DataError on a bad value."""
+def _path_key(frame) -> list:
+    path = frame.get("file_path") if isinstance(frame, dict) else None
+    return natural_key(path.replace("\\", "/") if isinstance(path, str) else "")
+
+
+def chosen_frames(meta: dict, frames: list, source: Path) -> list[int]:
+    """The indices into ``frames`` (the file's list) of the frames instant-ngp keeps, cut to
+    ``n_frames`` and thinned by sharpness (module docstring), in that order; every index, in the
+    file's order, where neither applies. DataError on a bad value."""
     cut = meta.get("n_frames")
     threshold = number(meta, "sharpness_discard_threshold", str(source)) \
         if "sharpness_discard_threshold" in meta else 0.0
-    sharp = threshold > 0 and isinstance(frames[0], dict) and "sharpness" in frames[0]
-    if cut is None and not sharp:
-        return frames
-    ordered = sorted(frames, key=lambda f: _path_key(f) if isinstance(f, dict) else "")
+    ordered = sorted(range(len(frames)), key=lambda i: _path_key(frames[i]))
     if cut is not None:
         if isinstance(cut, bool) or not isinstance(cut, int) or cut < 1:
             raise DataError(f"{source}: n_frames must be a positive integer, got {short(cut)}")
         ordered = ordered[:cut]
-    if not sharp:
-        return ordered
-    values = [number(f, "sharpness", f"{source} {_path_key(f)}") if isinstance(f, dict) and "sharpness" in f else 1.0
-              for f in ordered]
+    first = frames[ordered[0]]
+    if not (isinstance(first, dict) and "sharpness" in first):
+        return list(range(len(frames))) if cut is None else ordered
+    values = [_sharpness(frames[i], source) for i in ordered]
     kept = []
-    for i, frame in enumerate(ordered):
-        window = values[max(0, i - NEIGHBOURS_BEFORE):min(i + NEIGHBOURS_AFTER + 1, len(ordered) - 1)]
-        if not window or values[i] > threshold * sum(window) / len(window):
-            kept.append(frame)
+    for k, i in enumerate(ordered):
+        window = values[max(0, k - NEIGHBOURS_BEFORE):min(k + NEIGHBOURS_AFTER + 1, len(ordered) - 1)]
+        if not window or values[k] > threshold * sum(window) / len(window):
+            kept.append(i)
     dropped = len(ordered) - len(kept)
     if dropped:
-        log.warning(f"ngp-warp: {source}: left out {dropped} of {len(ordered)} frames blurrier than "
-                 f"{threshold:g} of their neighbours' mean sharpness (sharpness_discard_threshold)")
+        log.warning(f"ngp-warp: {source}: left out {dropped} of {len(ordered)} frames whose sharpness is "
+                    f"at most {threshold:g} of their neighbours' mean (sharpness_discard_threshold)")
     if not kept:
-        raise DataError(f"{source}: sharpness_discard_threshold {threshold:g} leaves no frame")
+        raise DataError(f"{source}: no frame is sharper than {threshold:g} of its neighbours' mean "
+                        "(sharpness_discard_threshold)")
     return kept
+
+
+def _sharpness(frame, source: Path) -> float:
+    """A frame's ``sharpness`` (1 where it has none, as instant-ngp reads it)."""
+    if isinstance(frame, dict) and "sharpness" in frame:
+        return number(frame, "sharpness", f"{source} {frame.get('file_path')}")
+    return 1.0
 
 
 def transparent_colour(meta: dict, source: Path) -> tuple[int, ...]:
@@ -93,22 +107,21 @@ def with_transparency(image: np.ndarray, colours: tuple[int, ...]) -> np.ndarray
     return image
 
 
-def warn_ignored(meta: dict, frames: list, source: Path, base: Path) -> None:
-    """One warning naming the instant-ngp keys of ``meta`` and its ``frames`` that change training
-    but that ngp-warp does not apply (module docstring); nothing when there are none."""
-    levels = [meta, *(f for f in frames if isinstance(f, dict))]
+def warn_ignored(meta: dict, frames: list[tuple[dict, Path]], source: Path) -> None:
+    """One warning naming the instant-ngp keys of ``meta`` and its frames (each with its image's
+    path) that change training but that ngp-warp does not apply (module docstring); nothing when
+    there are none."""
+    levels = [meta, *(f for f, _ in frames)]
     found = []
     if any(_non_zero(d.get("rolling_shutter")) for d in levels):
         found.append("rolling_shutter")
-    if any("transform_matrix_end" in d or "transform_matrix_start" in d for d in levels[1:]):
-        found.append("transform_matrix_start/end (the start pose is used)")
     if any(_non_zero(d.get("sharpen")) for d in levels):
         found.append("sharpen")
-    if _non_zero(meta.get("integer_depth_scale")) and any("depth_path" in d for d in levels[1:]):
+    if _non_zero(meta.get("integer_depth_scale")) and any("depth_path" in f for f, _ in frames):
         found.append("depth_path")
     if "envmap" in meta:
         found.append("envmap")
-    if any(_alpha_image(base, f) for f in levels[1:]):
+    if any(_alpha_image(f, image) for f, image in frames):
         found.append("<file_path>.alpha.<ext> images")
     if found:
         log.warning(f"ngp-warp: {source}: instant-ngp keys ngp-warp does not apply: {', '.join(found)}")
@@ -122,6 +135,8 @@ def _non_zero(value) -> bool:
     return False
 
 
-def _alpha_image(base: Path, frame: dict) -> bool:
-    path = _path_key(frame)
-    return bool(path) and (base / f"{path}.alpha{Path(path).suffix}").is_file()
+def _alpha_image(frame: dict, image: Path) -> bool:
+    """Whether instant-ngp's alpha image of ``frame`` exists: ``<file_path>.alpha.<extension of the
+    image read>``, beside the image (``file_path`` may leave the extension out)."""
+    name = Path(frame["file_path"].replace("\\", "/")).name
+    return (image.parent / f"{name}.alpha{image.suffix}").is_file()

@@ -22,14 +22,13 @@ from __future__ import annotations
 import json
 import logging
 import math
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ngp_warp.data.data_error import DataError, number, short
-from ngp_warp.data.ngp_frames import chosen_frames, transparent_colour, warn_ignored
+from ngp_warp.data.ngp_frames import chosen_frames, natural_key, transparent_colour, warn_ignored
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 NGP_SCALE = 0.33  # instant-ngp's default world -> unit-cube scale (NERF_SCALE)
@@ -83,10 +82,6 @@ def read_json(path: Path) -> dict:
 def _int_or_float(digits: str) -> int | float:
     """A JSON integer; one too long for a float becomes inf, which the finite checks name."""
     return int(digits) if len(digits) <= 18 else float(digits)
-
-
-def _natural_key(s: str):
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", s)]
 
 
 def _matrix(value, where: str, key: str = "transform_matrix") -> np.ndarray:
@@ -163,18 +158,18 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
         raise DataError(f"{source}: no 'frames' list")
     if not frames:
         raise DataError(f"{source}: no frames")
-    frames = chosen_frames(meta, frames, source)
-    warn_ignored(meta, frames, source, base)
-    top, out, missing, transparent = _camera_keys(meta), [], [], transparent_colour(meta, source)
-    for i, frame in enumerate(frames):
-        where = f"{source} frame {i}"
+    chosen = chosen_frames(meta, frames, source)
+    top, out, read, missing = _camera_keys(meta), [], [], []
+    transparent = transparent_colour(meta, source)
+    for i in chosen:
+        frame, where = frames[i], f"{source} frame {i}"
         if not isinstance(frame, dict):
             raise DataError(f"{where}: expected an object, got {short(frame)}")
         pose = "transform_matrix_start" if "transform_matrix_start" in frame else "transform_matrix"
         for key in ("file_path", pose):
             if key not in frame:
                 raise DataError(f"{where}: missing {key}")
-        c2w = _matrix(frame[pose], where)[:3]
+        c2w = _matrix(frame[pose], where, pose)[:3]
         _check_rigid(c2w, where)
         image = image_path(base, frame["file_path"], where)
         mask = frame.get("mask_path")
@@ -191,12 +186,14 @@ def read_frames(meta: dict, source: Path, base: Path) -> list[Frame]:
         marks_out = mask is None and dynamic.is_file()
         out.append(Frame(where, image, c2w, [top, _camera_keys(frame)], dynamic if marks_out else mask, marks_out,
                          transparent))
+        read.append(i)
     if not out:
-        raise DataError(f"{source}: none of the {len(frames)} frames has its image (first missing: {missing[0]})")
+        raise DataError(f"{source}: none of the {len(chosen)} frames has its image (first missing: {missing[0]})")
+    warn_ignored(meta, [(frames[i], f.image) for i, f in zip(read, out)], source)
     if missing:
-        log.warning(f"ngp-warp: {source}: skipped {len(missing)} of {len(frames)} frames whose image is "
+        log.warning(f"ngp-warp: {source}: skipped {len(missing)} of {len(chosen)} frames whose image is "
                     f"missing (first: {missing[0]})")
-    return sorted(out, key=lambda f: _natural_key(str(f.image)))
+    return sorted(out, key=lambda f: natural_key(str(f.image)))
 
 
 def named_split(meta: dict, frames: list[Frame], source: Path, base: Path) -> tuple[list[Frame], list[Frame]] | None:

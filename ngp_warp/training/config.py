@@ -54,8 +54,9 @@ class TrainConfig:
                                         # one step, σ·step, exceeds min(this, the mean); None: per scene
                                         # (instant-ngp's 0.01 on NeRF-synthetic, 0.05 on captures)
     occupancy_decay: float = 0.95       # each grid refresh (every 16 steps) scales old estimates by this
-    occupancy_open_steps: int = 0       # the first steps count every visible cell occupied (the grid
-                                        # still refreshes its estimates; no cell is culled yet)
+    occupancy_open_steps: int = 0       # the first steps count every cell occupied whose estimate is
+                                        # above 0 (every visible one; with grid_seen_only, those a
+                                        # training ray can sample); the estimates still refresh
     grid_seen_only: bool = False        # a refresh counts density only at points that a training ray
                                         # can sample (some training image holds them, past the near);
                                         # pinhole and OpenCV lenses (fisheye: ignored); it tests

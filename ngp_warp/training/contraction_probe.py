@@ -184,8 +184,10 @@ def probed_trainer(scene: Scene, config: TrainConfig | None, device: str | None 
     if steps < PROBE_MIN_STEPS:  # too short a run to tell: the box holding the cameras
         return make_trainer(scene, cameras, device), ProbeResult(None, None, 0, 0.0, "cameras")
     # PROBE_SCORE was set on grids that count every point's density: grid_seen_only, which drops
-    # the unseen parts of cells outside the box, would read a scene around its cameras as an object
-    trainer = make_trainer(scene, dataclasses.replace(config, contraction_fit="seen", grid_seen_only=False), device)
+    # the unseen parts of cells outside the box, would read a scene around its cameras as an object;
+    # and on grids that cull: an open grid's occupied share says nothing
+    probe = dataclasses.replace(config, contraction_fit="seen", grid_seen_only=False, occupancy_open_steps=0)
+    trainer = make_trainer(scene, probe, device)
     trainer.train(show_progress=show_progress, stop=(steps, None), until=_probe_over(trainer, seconds), desc="probe")
     spent_steps, spent_seconds = trainer.step_count, trainer.train_seconds
     share, cells = shares_inside(trainer.grid) if spent_steps >= PROBE_MIN_STEPS else (None, None)

@@ -46,7 +46,8 @@ def refined_transforms(scene_path: str | Path, downscale: int, image_names: list
         moved = {**frame, "file_path": image.absolute().as_posix()}
         if isinstance(frame.get("mask_path"), str) and frame["mask_path"]:
             moved["mask_path"] = image_path(base, frame["mask_path"], f"{source} frame {i}").absolute().as_posix()
-        if str(image) in refined:
+        if str(image) in refined:  # the refined pose is the frame's pose (a start pose would be read first)
+            moved = {k: v for k, v in moved.items() if k not in ("transform_matrix_start", "transform_matrix_end")}
             moved["transform_matrix"] = refined.pop(str(image))
         frames.append(moved)
     if refined:

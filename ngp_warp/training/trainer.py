@@ -154,7 +154,7 @@ class Trainer:
         return rays_o, rays_d, b.target, background
 
     def _grid_update(self, step: int, density_fn) -> bool:
-        # threshold 0 while the grid is open: every visible cell (σ > 0) is occupied
+        """Refresh the grid at ``step`` (``density_fn``: [M, 3] float32 → σ [M]); threshold 0 while open."""
         cfg = self.config
         threshold = 0.0 if step < cfg.occupancy_open_steps else cfg.occupancy_threshold
         return self.grid.update(step, density_fn, occ_threshold=threshold, ema_decay=cfg.occupancy_decay)
