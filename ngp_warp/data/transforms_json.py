@@ -213,7 +213,8 @@ def named_split(meta: dict, frames: list[Frame], source: Path, base: Path) -> tu
     held = images(key)
     test = [f for f in frames if f.image.resolve() in held]
     if not test:
-        raise DataError(f"{source}: none of the {len(held)} files {key} names is among the frames with an image")
+        raise DataError(f"{source}: none of the {len(held)} files {key} names is among the frames read "
+                        "(those with an image, within n_frames and the sharpness rule)")
     kept = images("train_filenames") if "train_filenames" in meta else None
     train = [f for f in frames if (f.image.resolve() in kept if kept is not None else f.image.resolve() not in held)]
     if not train:
