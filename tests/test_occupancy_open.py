@@ -13,11 +13,11 @@ from ngp_warp.training.config import TrainConfig
 from ngp_warp.training.trainer import Trainer
 
 
-def _trainer(folder, open_steps: int) -> Trainer:
+def _trainer(folder, open_steps: int, device: str = "cpu") -> Trainer:
     nerf_synthetic(folder, n_train=3, n_test=1, size=(16, 12))
     cfg = TrainConfig(steps=10_000, target_samples=2048, seed=3, occupancy_open_steps=open_steps, grid_resolution=16,
                       field=dataclasses.replace(FieldConfig(), n_levels=4, log2_hashmap_size=10, hidden=16))
-    return Trainer(load_scene(folder), cfg, device="cpu")
+    return Trainer(load_scene(folder), cfg, device=device)
 
 
 def _refresh(trainer: Trainer, step: int, density) -> torch.Tensor:
@@ -31,9 +31,10 @@ def _varied(points: torch.Tensor) -> torch.Tensor:
     return torch.exp(4.0 * torch.sin(3.0 * points).sum(-1))
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 @pytest.mark.parametrize("open_steps", [0, 16, 32])  # 16: the refresh at step 16 is past the open steps
-def test_the_grid_culls_no_visible_cell_while_open(tmp_path, open_steps):
-    trainer = _trainer(tmp_path / "scene", open_steps)
+def test_the_grid_culls_no_visible_cell_while_open(tmp_path, open_steps, device):
+    trainer = _trainer(tmp_path / "scene", open_steps, device)
     visible = (trainer.grid.occs >= 0).reshape(-1)
     occupied = _refresh(trainer, 16, _varied)
     if open_steps > 16:
