@@ -184,7 +184,11 @@ def test_output_files_are_vetted_before_the_run_is_loaded(tmp_path, capsys):
              (["export", str(run), "--points", "file/p.ply"], "folder " + str(run / "file") + " does not exist"),
              (["export", str(run), "--mesh", "x" * 300 + ".ply"], "longer than the file system takes"),
              (["render", str(run), "--video", "taken.ply"], "expected a .mp4 or .gif path"),
-             (["render", str(run), "--video", "file/v.mp4"], "does not exist")]
+             (["render", str(run), "--video", "file/v.mp4"], "does not exist"),
+             (["render", str(run), "--dataparser-transforms", str(run / "file")],
+              "maps a nerfstudio camera path, not --path orbit"),
+             (["render", str(run), "--path", str(run / "file"), "--dataparser-transforms", str(run / "none.json")],
+              "none.json: no such file")]
     for argv, message in cases:
         assert main([*argv, "--device", "cpu"]) == 2
         assert message in one_line_error(capsys), argv

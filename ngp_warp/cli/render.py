@@ -18,6 +18,9 @@ def add_path_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frames of an orbit, a spiral or an instant-ngp path (nerfstudio paths bring their own)")
     parser.add_argument("--fps", type=positive(float, *FPS_RANGE), default=20.0,
                         help="frames per second (nerfstudio paths bring their own)")
+    parser.add_argument("--dataparser-transforms", metavar="FILE",
+                        help="nerfstudio's dataparser_transforms.json of the training a nerfstudio camera path "
+                             "was made on: the path is mapped from nerfstudio's frame to the scene's")
     parser.add_argument("--depth-video", action="store_true", help="also write NAME_depth.mp4 (or .gif)")
 
 
@@ -31,6 +34,9 @@ def cmd_render(args) -> None:
         output_file(video.parent, depth_path(video).name, "--depth-video", (video.suffix.lower(),))
     if args.path not in PATH_KINDS and not Path(args.path).is_file():
         raise UserError(f"--path {args.path}: no such file (or use {' or '.join(PATH_KINDS)})")
+    if args.dataparser_transforms is not None and (args.path in PATH_KINDS or not Path(args.dataparser_transforms).is_file()):
+        raise UserError(f"--dataparser-transforms {args.dataparser_transforms}: " + (
+            "no such file" if args.path not in PATH_KINDS else f"maps a nerfstudio camera path, not --path {args.path}"))
     if args.near is not None and args.near >= FAR:
         raise UserError(f"--near must be below the rays' far distance {FAR:g}, got {args.near:g}")
     trainer, record = load_trainer(Path(args.dir) / CHECKPOINT, device=resolve_device(args.device), scene_path=args.scene)

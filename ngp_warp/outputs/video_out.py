@@ -123,9 +123,10 @@ def render_trainer_video(trainer, path: CameraPath, out: Path, depth: bool, quie
 
 
 def camera_path_from_args(args, scene, scene_dir: str | Path) -> CameraPath:
-    """The camera path ``args.path`` names, for a scene (its training cameras, image size and
-    ``aabb``; ``scene_dir``: the folder whose transforms.json gives instant-ngp's unit-cube map).
-    Raises ValueError with one line for a bad path file."""
+    """The camera path ``args.path`` names, for a scene (its training cameras, image size,
+    ``aabb`` and source; ``scene_dir``: the folder whose transforms.json gives instant-ngp's
+    unit-cube map), a nerfstudio path mapped back through ``args.dataparser_transforms`` where
+    given. Raises ValueError with one line for a bad path file."""
     train = scene.train
     if args.path in PATH_KINDS:
         center = ((scene.aabb[:3] + scene.aabb[3:]) / 2).cpu()
@@ -133,8 +134,12 @@ def camera_path_from_args(args, scene, scene_dir: str | Path) -> CameraPath:
                               center, args.frames, args.fps)
     if not Path(args.path).is_file():
         raise ValueError(f"--path {args.path}: no such file (or use {' or '.join(PATH_KINDS)})")
+    dataparser = args.dataparser_transforms
+    if dataparser is not None and scene.source == "colmap":
+        raise ValueError(f"--dataparser-transforms {dataparser}: this scene was read from a COLMAP model, whose "
+                         "frame ngp-warp normalises its own way; a nerfstudio path maps onto a transforms.json scene")
     scale, offset = ngp_transform(scene_dir)
-    path = load_camera_path(args.path, train.width, train.height, args.frames, args.fps, scale, offset)
+    path = load_camera_path(args.path, train.width, train.height, args.frames, args.fps, scale, offset, dataparser)
     print(f"camera path {args.path}: {len(path.c2w)} frames {path.width}x{path.height} at {path.fps:g} fps",
           file=sys.stderr)
     return path
