@@ -1,5 +1,6 @@
 """nerfstudio camera paths made on a nerfstudio training: mapped back from the frame nerfstudio
-trained in (its ``dataparser_transforms.json``) to the scene's own, as nerfstudio's
+trained in (its ``dataparser_transforms.json``, which also holds the scene file's
+``applied_transform`` and ``applied_scale``) to the scene file's own, as nerfstudio's
 ``transform_poses_to_original_space`` maps them."""
 
 import json
@@ -11,7 +12,8 @@ import torch
 
 from ngp_warp.data.scene import look_at
 from ngp_warp.outputs import video_out
-from ngp_warp.outputs.camera_path import from_dataparser_frame, load_camera_path
+from ngp_warp.outputs.camera_path import load_camera_path
+from ngp_warp.outputs.nerfstudio_frame import NERFSTUDIO_COLMAP_APPLIED, from_dataparser_frame
 
 WORLD = torch.from_numpy(np.stack([look_at(np.array(p)) for p in [[3.0, 1, 1], [1, 3, 2], [-2, 2, 1.5]]]))
 
@@ -56,6 +58,29 @@ def test_a_path_in_nerfstudios_frame_comes_back_to_the_scenes(tmp_path):
     pose[:, :3, 3] /= scale
     inverse = torch.linalg.inv(torch.cat([transform, torch.tensor([[0.0, 0, 0, 1]], dtype=torch.float64)]))
     torch.testing.assert_close(from_dataparser_frame(trained, transform, scale), (inverse @ pose)[:, :3])
+
+
+@pytest.mark.parametrize("applied, colmap_folder", [("key", False), (None, True), (None, False)])
+def test_the_scene_files_applied_transform_is_taken_out(tmp_path, applied, colmap_folder):
+    """nerfstudio saves transform · A and scale · applied_scale, A the file's applied_transform
+    (nerfstudio's old COLMAP default beside colmap/sparse/0 without the key, else none)."""
+    auto, scale, applied_scale = _rigid(4), 0.6, 2.5
+    a = _rigid(5) if applied == "key" else torch.tensor(NERFSTUDIO_COLMAP_APPLIED, dtype=torch.float64)
+    if applied is None and not colmap_folder:
+        a = torch.eye(4, dtype=torch.float64)[:3]
+    scene = tmp_path / "scene"
+    (scene / "colmap" / "sparse" / "0").mkdir(parents=True) if colmap_folder else scene.mkdir()
+    meta = {"frames": [], "applied_scale": applied_scale, **({"applied_transform": a.tolist()} if applied else {})}
+    (scene / "transforms.json").write_text(json.dumps(meta))
+    write_nerfstudio_path(tmp_path, to_nerfstudio(WORLD, auto, scale))  # the scene file's poses, as trained
+    saved = torch.cat([auto, torch.tensor([[0.0, 0, 0, 1]], dtype=torch.float64)]) @ \
+        torch.cat([a, torch.tensor([[0.0, 0, 0, 1]], dtype=torch.float64)])
+    (tmp_path / "d.json").write_text(json.dumps({"transform": saved[:3].tolist(), "scale": scale * applied_scale}))
+    path = load_camera_path(tmp_path / "camera_path.json", 8, 8, 4, 5.0, dataparser=tmp_path / "d.json", scene=scene)
+    torch.testing.assert_close(path.c2w, WORLD.float(), rtol=0, atol=1e-5)
+    if applied or colmap_folder:  # without the scene, the path lands elsewhere
+        off = load_camera_path(tmp_path / "camera_path.json", 8, 8, 4, 5.0, dataparser=tmp_path / "d.json")
+        assert not torch.allclose(off.c2w, WORLD.float(), atol=1e-2)
 
 
 @pytest.mark.parametrize("content, message", [

@@ -16,6 +16,7 @@ import torch
 
 from ngp_warp.data.data_error import short
 from ngp_warp.data.transforms_json import NGP_OFFSET, NGP_SCALE, ngp_scale_offset, read_json
+from ngp_warp.outputs.nerfstudio_frame import from_dataparser_frame, read_dataparser_transform, transforms_file
 
 MAX_FRAMES = 100_000  # a video's frames: nearly an hour at 30 fps
 MAX_SIDE = 16384  # a frame's width and height in pixels
@@ -184,46 +185,13 @@ def nerfstudio_path(meta: dict, where: str) -> CameraPath:
     return CameraPath(m[:, :3].float(), _intrinsics_from_fov(fov, width, height), width, height, fps)
 
 
-def read_dataparser_transform(path: str | Path) -> tuple[torch.Tensor, float]:
-    """nerfstudio's ``dataparser_transforms.json`` (written into a nerfstudio training's output
-    folder): (``transform`` [3, 4] float64, a rigid map from the data's frame to the frame
-    nerfstudio trained in, ``scale``), which nerfstudio's poses and camera paths are in after
-    the map: ``p_ns = scale · (R p + t)``. ValueError with one line for anything else."""
-    meta = read_json(Path(path))
-    try:
-        transform = torch.tensor(meta["transform"], dtype=torch.float64)
-        scale = float(meta["scale"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{path}: not a nerfstudio dataparser_transforms.json ({type(e).__name__}: {e})") from None
-    if transform.shape != (3, 4) or not torch.isfinite(transform).all() or not (0 < scale < math.inf):
-        raise ValueError(f"{path}: transform must be 3 rows of 4 finite numbers and scale a positive number")
-    rotation = transform[:, :3]
-    if (rotation.T @ rotation - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-4 or torch.det(rotation) < 0:
-        raise ValueError(f"{path}: transform is not a rotation and a translation")
-    return transform, scale
-
-
-def from_dataparser_frame(c2w: torch.Tensor, transform: torch.Tensor, scale: float) -> torch.Tensor:
-    """Camera-to-world poses [N, 3, 4] in nerfstudio's trained frame → the data's own frame
-    ([N, 3, 4] float64), the inverse of :func:`read_dataparser_transform`'s map (nerfstudio's
-    ``transform_poses_to_original_space``, OpenGL axes): ``R_w = Rᵀ R_ns``, ``t_w = Rᵀ (t_ns / scale − t)``."""
-    rotation, shift = transform[:, :3], transform[:, 3]
-    c2w = c2w.double()
-    turned = rotation.T @ c2w[:, :, :3]
-    position = (c2w[:, :, 3] / scale - shift) @ rotation  # Rᵀ v for each row v
-    return torch.cat([turned, position[:, :, None]], -1)
-
-
 def ngp_transform(scene: str | Path) -> tuple[float, list[float]]:
     """(scale, offset) of instant-ngp's map ``ngp = world · scale + offset`` for a scene (a
     transforms file, or a folder with transforms.json or transforms_train.json), as training
     reads them (:func:`~ngp_warp.data.transforms_json.ngp_scale_offset`: ``scale``, ``offset``
     or ``aabb``), else instant-ngp's defaults 0.33 and (0.5, 0.5, 0.5)."""
-    scene = Path(scene)
-    for path in [scene] if scene.is_file() else [scene / "transforms.json", scene / "transforms_train.json"]:
-        if path.is_file():
-            return ngp_scale_offset(read_json(path), path)
-    return NGP_SCALE, list(NGP_OFFSET)
+    path = transforms_file(scene)
+    return (NGP_SCALE, list(NGP_OFFSET)) if path is None else ngp_scale_offset(read_json(path), path)
 
 
 def ngp_to_world(rotation: torch.Tensor, position: torch.Tensor, scale: float, offset) -> tuple[torch.Tensor, torch.Tensor]:
@@ -267,12 +235,13 @@ def instant_ngp_path(meta: dict, where: str, width: int, height: int, n_frames: 
 
 
 def load_camera_path(path: str | Path, width: int, height: int, n_frames: int, fps: float,
-                     scale: float = NGP_SCALE, offset=NGP_OFFSET, dataparser: str | Path | None = None) -> CameraPath:
+                     scale: float = NGP_SCALE, offset=NGP_OFFSET, dataparser: str | Path | None = None,
+                     scene: str | Path | None = None) -> CameraPath:
     """Read a nerfstudio ``camera_path.json`` (its own size, fps and frames; with ``dataparser``,
     nerfstudio's ``dataparser_transforms.json``, taken from the frame nerfstudio trained in back
-    to the data's) or an instant-ngp ``base_cam.json`` (``width`` × ``height``, ``n_frames`` at
-    ``fps``, instant-ngp's unit-cube map ``scale``/``offset``, see :func:`ngp_transform`).
-    Raises ValueError with one line."""
+    to the ``scene`` file's, see :func:`read_dataparser_transform`) or an instant-ngp
+    ``base_cam.json`` (``width`` × ``height``, ``n_frames`` at ``fps``, instant-ngp's unit-cube
+    map ``scale``/``offset``, see :func:`ngp_transform`). Raises ValueError with one line."""
     path = Path(path)
     meta = read_json(path)  # a DataError, a ValueError, names a file that cannot be read
     if dataparser is not None and "camera_path" not in meta:
@@ -281,7 +250,8 @@ def load_camera_path(path: str | Path, width: int, height: int, n_frames: int, f
         cameras = nerfstudio_path(meta, str(path))
         if dataparser is None:
             return cameras
-        return replace(cameras, c2w=from_dataparser_frame(cameras.c2w, *read_dataparser_transform(dataparser)).float())
+        back = read_dataparser_transform(dataparser, scene)
+        return replace(cameras, c2w=from_dataparser_frame(cameras.c2w, *back).float())
     if "path" in meta:
         return instant_ngp_path(meta, str(path), width, height, n_frames, fps, scale, offset)
     raise ValueError(f"{path}: neither a nerfstudio camera_path.json (camera_path) nor an "

@@ -139,7 +139,8 @@ def camera_path_from_args(args, scene, scene_dir: str | Path) -> CameraPath:
         raise ValueError(f"--dataparser-transforms {dataparser}: this scene was read from a COLMAP model, whose "
                          "frame ngp-warp normalises its own way; a nerfstudio path maps onto a transforms.json scene")
     scale, offset = ngp_transform(scene_dir)
-    path = load_camera_path(args.path, train.width, train.height, args.frames, args.fps, scale, offset, dataparser)
+    path = load_camera_path(args.path, train.width, train.height, args.frames, args.fps, scale, offset, dataparser,
+                            scene_dir)
     print(f"camera path {args.path}: {len(path.c2w)} frames {path.width}x{path.height} at {path.fps:g} fps",
           file=sys.stderr)
     return path
