@@ -62,6 +62,16 @@ class Frame:
     transparent: tuple[int, ...] = ()  # colour values whose pixels are transparent (white_transparent ...)
 
 
+def transforms_file(scene: str | Path) -> Path | None:
+    """A scene's transforms file: itself, or the folder's transforms.json or
+    transforms_train.json; None where there is none (a COLMAP model)."""
+    scene = Path(scene)
+    for path in [scene] if scene.is_file() else [scene / "transforms.json", scene / "transforms_train.json"]:
+        if path.is_file():
+            return path
+    return None
+
+
 def read_json(path: Path) -> dict:
     """The JSON object in ``path``, or a one-line DataError."""
     try:

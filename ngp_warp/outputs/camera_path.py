@@ -15,8 +15,8 @@ from pathlib import Path
 import torch
 
 from ngp_warp.data.data_error import short
-from ngp_warp.data.transforms_json import NGP_OFFSET, NGP_SCALE, ngp_scale_offset, read_json
-from ngp_warp.outputs.nerfstudio_frame import from_dataparser_frame, read_dataparser_transform, transforms_file
+from ngp_warp.data.transforms_json import NGP_OFFSET, NGP_SCALE, ngp_scale_offset, read_json, transforms_file
+from ngp_warp.outputs.nerfstudio_frame import from_dataparser_frame, read_dataparser_transform
 
 MAX_FRAMES = 100_000  # a video's frames: nearly an hour at 30 fps
 MAX_SIDE = 16384  # a frame's width and height in pixels

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from ngp_warp.data.transforms_json import read_json
+from ngp_warp.data.transforms_json import read_json, transforms_file
 
 
 def read_dataparser_transform(path: str | Path, scene: str | Path | None = None) -> tuple[torch.Tensor, float]:
@@ -75,12 +75,3 @@ def from_dataparser_frame(c2w: torch.Tensor, transform: torch.Tensor, scale: flo
     position = (c2w[:, :, 3] / scale - shift) @ rotation  # Rᵀ v for each row v
     return torch.cat([turned, position[:, :, None]], -1)
 
-
-def transforms_file(scene: str | Path) -> Path | None:
-    """A scene's transforms file: itself, or the folder's transforms.json or
-    transforms_train.json; None where there is none (a COLMAP model)."""
-    scene = Path(scene)
-    for path in [scene] if scene.is_file() else [scene / "transforms.json", scene / "transforms_train.json"]:
-        if path.is_file():
-            return path
-    return None
