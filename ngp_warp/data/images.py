@@ -13,7 +13,6 @@ import numpy as np
 from PIL import Image
 
 from ngp_warp.data.data_error import DataError
-from ngp_warp.data.ngp_frames import with_transparency
 from ngp_warp.data.transforms_json import Frame, log
 
 PLAIN_MODES = ("RGB", "RGBA", "L", "LA")  # Pillow's 8-bit modes, whose pixels need no conversion
@@ -80,6 +79,23 @@ def downscale_image(a: np.ndarray, n: int) -> np.ndarray:
     return np.clip(np.floor(out + 0.5), 0, 255).astype(np.uint8)
 
 
+def with_opaque_alpha(a: np.ndarray) -> np.ndarray:
+    """uint8 images [..., 3] with an alpha channel of 255 added: [..., 4]."""
+    return np.concatenate([a, np.full(a.shape[:-1] + (1,), 255, np.uint8)], axis=-1)
+
+
+def with_transparency(image: np.ndarray, colours: tuple[int, ...]) -> np.ndarray:
+    """[H, W, 3 or 4] uint8 ``image`` with alpha 0 where every colour channel equals one of
+    ``colours`` ([H, W, 4]; the image itself when ``colours`` is empty): instant-ngp's
+    ``white_transparent`` / ``black_transparent`` (:mod:`ngp_warp.data.ngp_frames`)."""
+    if not colours:
+        return image
+    image = with_opaque_alpha(image) if image.shape[2] == 3 else image.copy()
+    for value in colours:
+        image[(image[..., :3] == value).all(axis=2), 3] = 0
+    return image
+
+
 def load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
     """Read, check and downscale every frame's image -> ([N, h, w, C] uint8, original (W, H)s)."""
     def load(frame: Frame):
@@ -99,9 +115,9 @@ def load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[t
             if out is None:
                 out = np.empty((len(frames), *img.shape), dtype=np.uint8)
             if img.shape[2] > out.shape[3]:  # the first RGBA image after RGB ones: add opaque alpha
-                out = np.concatenate([out, np.full(out.shape[:3] + (1,), 255, np.uint8)], axis=3)
+                out = with_opaque_alpha(out)
             elif img.shape[2] < out.shape[3]:
-                img = np.concatenate([img, np.full(img.shape[:2] + (1,), 255, np.uint8)], axis=2)
+                img = with_opaque_alpha(img)
             out[k] = img
     finally:
         pool.shutdown(wait=True, cancel_futures=True)  # after an error, skip the images not yet read

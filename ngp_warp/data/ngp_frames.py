@@ -9,7 +9,8 @@
   order, frames ``i - 3`` up to ``i + 2`` (instant-ngp's window, cut at the ends; the last
   frame's leaves itself out; a lone frame stays).
 * ``white_transparent`` / ``black_transparent``: pixels whose three colour channels are all 255
-  (all 0) are transparent (alpha 0), as though the images had an alpha channel that says so.
+  (all 0) are transparent (alpha 0), as though the images had an alpha channel that says so
+  (:func:`ngp_warp.data.images.with_transparency`).
 * A frame's ``transform_matrix_start`` is its pose, as in instant-ngp.
 * Read past with one warning, so that a capture that relies on them does not train silently
   without them: ``rolling_shutter`` (non-zero: the rolling shutter and the motion blur toward a
@@ -23,8 +24,6 @@ from __future__ import annotations
 import logging
 import re
 from pathlib import Path
-
-import numpy as np
 
 from ngp_warp.data.data_error import DataError, number, short
 
@@ -91,20 +90,6 @@ def transparent_colour(meta: dict, source: Path) -> tuple[int, ...]:
         if flag:
             colours.append(value)
     return tuple(colours)
-
-
-def with_transparency(image: np.ndarray, colours: tuple[int, ...]) -> np.ndarray:
-    """[H, W, 3 or 4] uint8 ``image`` with alpha 0 where every colour channel equals one of
-    ``colours`` ([H, W, 4]; the image itself when ``colours`` is empty)."""
-    if not colours:
-        return image
-    if image.shape[2] == 3:
-        image = np.concatenate([image, np.full(image.shape[:2] + (1,), 255, np.uint8)], axis=2)
-    else:
-        image = image.copy()
-    for value in colours:
-        image[(image[..., :3] == value).all(axis=2), 3] = 0
-    return image
 
 
 def warn_ignored(meta: dict, frames: list[tuple[dict, Path]], source: Path) -> None:
