@@ -142,8 +142,10 @@ def _train_config(path: Path, saved: dict, scene_near: float) -> TrainConfig:
     accept. Checkpoints without sub-rays trained one ray per pixel, those without
     ``distortion_spacing`` took the distortion loss in world distances, and those without
     ``field.environment`` had no learned environment, those without ``aabb_scale`` the box of
-    the scene's files, those without ``near`` the scene's own near (``scene_near``)."""
-    saved = {"supersample": 1, "distortion_spacing": "world", "aabb_scale": None, "near": scene_near, **saved}
+    the scene's files, those without ``near`` the scene's own near (``scene_near``), those
+    without the start's settings a 100-step warm-up, an unopened grid and every point's density."""
+    saved = {"supersample": 1, "distortion_spacing": "world", "aabb_scale": None, "near": scene_near,
+             "lr_warmup": 100, "occupancy_open_steps": 0, "grid_seen_only": False, **saved}
     try:
         config = TrainConfig(**{**saved, "field": FieldConfig(**{"environment": False, **saved["field"]})})
         config.check()

@@ -13,7 +13,7 @@ from ngp_warp.ops.field import INSTANT_NGP_FINEST_RESOLUTION, MAX_RESOLUTION, Fi
 from ngp_warp.training.memory_estimate import MAX_SAMPLES_PER_CALL
 from ngp_warp.training.model import FAR
 from ngp_warp.training.scene_defaults import (AUTO_FIT, CONTRACTION_FITS, PROBE_FIT, appearance_dim, capture_near,
-                                             choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
+                                             capture_start, choose_aabb_scale, choose_contraction, cone_steps, contraction_box,
                                              distortion_weight, occupancy_threshold)
 from ngp_warp.data.transforms_json import CONTRACTIONS, MAX_AABB_SCALE
 
@@ -32,7 +32,8 @@ class TrainConfig:
     initial_rays: int = 1024
     max_rays: int = 1 << 18
     lr: float = 1e-2
-    lr_warmup: int = 100                # steps of the learning rate's linear warm-up
+    lr_warmup: int | None = None        # steps of the learning rate's linear warm-up; None: per scene and
+                                        # device (1000 for bounded captures on CUDA, else 100)
     weight_decay: float = 1e-6          # on MLP weights only
     loss: str = "l2"                    # "l2" or "huber"
     seed: int = 0
@@ -54,13 +55,15 @@ class TrainConfig:
                                         # one step, σ·step, exceeds min(this, the mean); None: per scene
                                         # (instant-ngp's 0.01 on NeRF-synthetic, 0.05 on captures)
     occupancy_decay: float = 0.95       # each grid refresh (every 16 steps) scales old estimates by this
-    occupancy_open_steps: int = 0       # the first steps count every cell occupied whose estimate is
-                                        # above 0 (every visible one; with grid_seen_only, those a
-                                        # training ray can sample); the estimates still refresh
-    grid_seen_only: bool = False        # a refresh counts density only at points that a training ray
+    occupancy_open_steps: int | None = None  # the first steps count every cell occupied whose estimate
+                                        # is above 0 (every visible one; with grid_seen_only, those a
+                                        # training ray can sample); the estimates still refresh; None: as
+                                        # lr_warmup for bounded captures on CUDA, else 0
+    grid_seen_only: bool | None = None  # a refresh counts density only at points that a training ray
                                         # can sample (some training image holds them, past the near);
                                         # pinhole and OpenCV lenses (fisheye: ignored); it tests
-                                        # the starting poses (camera_refinement moves them)
+                                        # the starting poses (camera_refinement moves them); None:
+                                        # on for bounded captures on CUDA
     mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
                                         # field's graphs, "tf32" matmuls, or "fp32"
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
@@ -105,9 +108,10 @@ class TrainConfig:
                        non_negative=("weight_decay", "cone_angle", "early_stop_eps", "distortion_weight",
                                      "near_gradient_distance"),
                        optional=("steps", "seconds", "target_samples", "cone_angle", "occupancy_threshold",
-                                 "distortion_weight", "near"))
-        if type(self.occupancy_open_steps) is not int or self.occupancy_open_steps < 0:
-            raise ValueError(f"occupancy_open_steps must be an integer ≥ 0, got {self.occupancy_open_steps!r}")
+                                 "distortion_weight", "near", "lr_warmup"))
+        open_steps = self.occupancy_open_steps
+        if open_steps is not None and (type(open_steps) is not int or open_steps < 0):
+            raise ValueError(f"occupancy_open_steps must be an integer ≥ 0, got {open_steps!r}")
         if self.contraction_fit == PROBE_FIT and self.contraction != "auto":
             raise ValueError(f"contraction_fit 'probe' decides whether to contract: leave contraction at auto "
                              f"(got {self.contraction!r}), or give contraction_fit cameras or seen")
@@ -130,7 +134,7 @@ class TrainConfig:
             raise ValueError(f"weight_average must be in [0, 1), got {self.weight_average!r}")
         if type(self.backdrop_alpha) is not bool:
             raise ValueError(f"backdrop_alpha must be true or false, got {self.backdrop_alpha!r}")
-        if type(self.grid_seen_only) is not bool:
+        if self.grid_seen_only is not None and type(self.grid_seen_only) is not bool:
             raise ValueError(f"grid_seen_only must be true or false, got {self.grid_seen_only!r}")
         if type(self.camera_refinement) is not bool:
             raise ValueError(f"camera_refinement must be true or false, got {self.camera_refinement!r}")
@@ -290,8 +294,13 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     threshold = occupancy_threshold(scene) if threshold is None else threshold
     distortion = distortion_weight(scene, kind) if config.distortion_weight is None else config.distortion_weight
     near = capture_near(scene, kind) if config.near is None else config.near
+    warmup, open_steps, seen_only = capture_start(scene, kind, device_type)
     config = dataclasses.replace(config, contraction=kind, aabb_scale=aabb_scale, cone_angle=cone, occupancy_threshold=threshold,
                                  distortion_weight=distortion, near=near)
+    config = dataclasses.replace(
+        config, lr_warmup=warmup if config.lr_warmup is None else config.lr_warmup,
+        occupancy_open_steps=open_steps if config.occupancy_open_steps is None else config.occupancy_open_steps,
+        grid_seen_only=seen_only if config.grid_seen_only is None else config.grid_seen_only)
     field_config = config.field
     if field_config.appearance_dim is None:
         field_config = dataclasses.replace(field_config, appearance_dim=appearance_dim(scene))
