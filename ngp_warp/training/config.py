@@ -32,8 +32,8 @@ class TrainConfig:
     initial_rays: int = 1024
     max_rays: int = 1 << 18
     lr: float = 1e-2
-    lr_warmup: int | None = None        # steps of the learning rate's linear warm-up; None: per scene and
-                                        # device (1000 for bounded captures on CUDA, else 100)
+    lr_warmup: int | None = None        # steps of the learning rate's linear warm-up; None: 100, or a
+                                        # bounded capture's start on CUDA (scene_defaults.capture_start)
     weight_decay: float = 1e-6          # on MLP weights only
     loss: str = "l2"                    # "l2" or "huber"
     seed: int = 0
@@ -57,13 +57,13 @@ class TrainConfig:
     occupancy_decay: float = 0.95       # each grid refresh (every 16 steps) scales old estimates by this
     occupancy_open_steps: int | None = None  # the first steps count every cell occupied whose estimate
                                         # is above 0 (every visible one; with grid_seen_only, those a
-                                        # training ray can sample); the estimates still refresh; None: as
-                                        # lr_warmup for bounded captures on CUDA, else 0
+                                        # training ray can sample); the estimates still refresh; None: 0,
+                                        # or a bounded capture's start on CUDA
     grid_seen_only: bool | None = None  # a refresh counts density only at points that a training ray
                                         # can sample (some training image holds them, past the near);
                                         # pinhole and OpenCV lenses (fisheye: ignored); it tests
                                         # the starting poses (camera_refinement moves them); None:
-                                        # on for bounded captures on CUDA
+                                        # on in a bounded capture's start on CUDA
     mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
                                         # field's graphs, "tf32" matmuls, or "fp32"
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
@@ -294,7 +294,8 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     threshold = occupancy_threshold(scene) if threshold is None else threshold
     distortion = distortion_weight(scene, kind) if config.distortion_weight is None else config.distortion_weight
     near = capture_near(scene, kind) if config.near is None else config.near
-    warmup, open_steps, seen_only = capture_start(scene, kind, device_type)
+    warmup, open_steps, seen_only = capture_start(scene, kind, device_type, default_target_samples(config, device_type),
+                                                  config.supersample ** 2)
     config = dataclasses.replace(config, contraction=kind, aabb_scale=aabb_scale, cone_angle=cone, occupancy_threshold=threshold,
                                  distortion_weight=distortion, near=near)
     config = dataclasses.replace(

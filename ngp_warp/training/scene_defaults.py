@@ -35,17 +35,22 @@ learned environment's starting colour.
   bounded capture scenes moved within their runs' spread (−0.2 to +0.3 dB), the objects over
   the sky gained. Contracted scenes, NeRF-synthetic renders and fisheye captures keep the
   scene's near.
-* The start of a bounded capture on CUDA: the learning rate warms up over 1000 steps (not 100),
-  the occupancy grid culls no visible cell for those steps, and its refreshes count density only
-  where a training ray can sample (``grid_seen_only``). Early in a capture's training the finest
-  levels can put an opaque blob just past a few training cameras' near, which held-out views
-  near them see (fox's view 0012 at 16–27 dB, in about one run of five); the slower start keeps
-  it away, and the open grid keeps the soft early field from culling weakly seen space that it
-  cannot win back (fox's view 0001, at the capture's edge). On fox (H200, 60 s, RESULTS.md) the
-  right halves scored 32.04 over seven seeds, each 31.95–32.19, against 31.72 on the same seeds
-  with the warm-up alone and about 31.7 with neither. A CPU run's whole budget is a few thousand
-  steps, and the seen-only count is costly there, so the CPU keeps 100 steps, an unopened
-  grid and every point's density.
+* The start of a bounded capture on CUDA: until the batches have met about 5 % of the training
+  pixels (at most 1000 steps), the learning rate warms up, the occupancy grid culls no visible
+  cell, and its refreshes count density only where a training ray can sample
+  (``grid_seen_only``); a capture whose 5 % takes 100 steps or fewer starts as every other run
+  (a 100-step warm-up). Early in a high-resolution capture's training, when the batches have
+  met a few per cent of its pixels, the finest levels can put an opaque blob just past a few
+  training cameras' near for some images' rows, which held-out views near them see (fox's
+  view 0012 at 16–27 dB, in about one run of five); the slow start keeps it away, and the open
+  grid keeps the soft early field from culling weakly seen space that it cannot win back (fox's
+  view 0001, at the capture's edge). On fox (43 images of 1080 × 1920: 1000 steps; H200, 60 s,
+  RESULTS.md) the right halves scored 32.09 over ten runs, each 31.95–32.26, against 31.72 on
+  seven of the seeds with the warm-up alone and about 31.7 with neither. A small-image capture
+  meets each pixel hundreds of times in a run, and there a 1000-step start cost 0.5 dB (the
+  demo object as a COLMAP model, 52 images of 100 × 100: now 100 steps, main's start). A CPU
+  run's whole budget is a few thousand steps, and the seen-only count is costly there, so the
+  CPU keeps main's start.
 * Appearance codes: 16 per training image for captures (exposure and white balance vary),
   none for NeRF-synthetic renders.
 * Distortion loss (mip-NeRF 360), in its normalised distance s = 1 − near/t: weight 4e-3 on
@@ -75,7 +80,9 @@ CAPTURE_DISTORTION_WEIGHT = 4e-3  # with distortion_spacing 'normalised'
 _MIN_CAMERAS = 8  # fewer cameras never count as surrounding a centre
 _MAX_RESULTANT = 0.5  # |mean horizontal direction from the centre to the cameras|: 0 for a ring
 _MIN_INWARD = 0.8  # mean cosine between a camera's view axis and its direction to the centre
-CAPTURE_WARMUP_STEPS = 1000  # a bounded capture's learning-rate warm-up and open grid on CUDA
+CAPTURE_WARMUP_STEPS = 1000  # the longest start of a bounded capture on CUDA (warm-up and open grid)
+START_PIXEL_SHARE = 0.05  # ... which lasts until the batches have met this share of the training pixels
+NOMINAL_SAMPLES_PER_RAY = 16  # trained samples a ray, to count a step's pixels before training (fox: 15-17)
 WARMUP_STEPS = 100  # every other run's learning-rate warm-up
 FOCUS_NEAR_SHARE = 0.3  # a bounded capture's rays start this share of the cameras' distance to their focus
 _BACKDROP_SHARE = 0.98  # share of the images' edge pixels within _BACKDROP_TOLERANCE of one colour
@@ -273,13 +280,23 @@ def distortion_weight(scene: Scene, contraction: str | None) -> float:
     return CAPTURE_DISTORTION_WEIGHT if bounded_capture(scene, contraction) else 0.0
 
 
-def capture_start(scene: Scene, contraction: str | None, device_type: str) -> tuple[int, int, bool]:
+def capture_start(scene: Scene, contraction: str | None, device_type: str, samples_per_step: int,
+                  subrays: int) -> tuple[int, int, bool]:
     """The learning rate's warm-up steps, the occupancy grid's open steps and whether its
     refreshes count only seen points, for ``scene`` trained with ``contraction`` on a device of
-    ``device_type`` ("cuda" or "cpu"; see the module docstring)."""
-    if bounded_capture(scene, contraction) and device_type == "cuda":
-        return CAPTURE_WARMUP_STEPS, CAPTURE_WARMUP_STEPS, True
-    return WARMUP_STEPS, 0, False
+    ``device_type`` ("cuda" or "cpu") at ``samples_per_step`` trained samples a step and
+    ``subrays`` rays a pixel (see the module docstring): main's start (100 steps, no open grid,
+    every point's density) unless the steps that meet :data:`START_PIXEL_SHARE` of the training
+    pixels, at :data:`NOMINAL_SAMPLES_PER_RAY`, are more than that."""
+    if not bounded_capture(scene, contraction) or device_type != "cuda":
+        return WARMUP_STEPS, 0, False
+    images = scene.train.images
+    pixels = images.shape[0] * images.shape[1] * images.shape[2]
+    pixels_per_step = samples_per_step / (subrays * NOMINAL_SAMPLES_PER_RAY)
+    steps = min(round(START_PIXEL_SHARE * pixels / pixels_per_step), CAPTURE_WARMUP_STEPS)
+    if steps <= WARMUP_STEPS:
+        return WARMUP_STEPS, 0, False
+    return steps, steps, True
 
 
 def appearance_dim(scene: Scene) -> int:
