@@ -52,6 +52,13 @@ def test_other_runs_start_as_main():
         capture_start(_sized(131, 400, 400), None, "cuda", 1 << 18, 4)[0]
 
 
+def test_a_step_budget_holds_the_start_to_a_tenth_of_it():
+    fox = _sized(43, 1920, 1080)
+    assert capture_start(fox, None, "cuda", 1 << 18, 4, budget_steps=1500) == (150, 150, True)
+    assert capture_start(fox, None, "cuda", 1 << 18, 4, budget_steps=900) == MAIN  # a tenth is under main's 100
+    assert capture_start(fox, None, "cuda", 1 << 18, 4, budget_steps=20_000)[0] == CAPTURE_WARMUP_STEPS
+
+
 # 12 images of 8 × 8 at 16 samples a step of 2 × 2 sub-rays: 0.25 pixels a step, 154 steps to meet 5 %
 TINY_BATCHES = dict(contraction=None, target_samples=16, supersample=2)
 

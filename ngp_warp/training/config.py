@@ -295,7 +295,7 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     distortion = distortion_weight(scene, kind) if config.distortion_weight is None else config.distortion_weight
     near = capture_near(scene, kind) if config.near is None else config.near
     warmup, open_steps, seen_only = capture_start(scene, kind, device_type, default_target_samples(config, device_type),
-                                                  config.supersample ** 2)
+                                                  config.supersample ** 2, config.budget()[0])
     config = dataclasses.replace(config, contraction=kind, aabb_scale=aabb_scale, cone_angle=cone, occupancy_threshold=threshold,
                                  distortion_weight=distortion, near=near)
     config = dataclasses.replace(

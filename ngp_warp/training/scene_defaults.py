@@ -281,19 +281,22 @@ def distortion_weight(scene: Scene, contraction: str | None) -> float:
 
 
 def capture_start(scene: Scene, contraction: str | None, device_type: str, samples_per_step: int,
-                  subrays: int) -> tuple[int, int, bool]:
+                  subrays: int, budget_steps: int | None = None) -> tuple[int, int, bool]:
     """The learning rate's warm-up steps, the occupancy grid's open steps and whether its
     refreshes count only seen points, for ``scene`` trained with ``contraction`` on a device of
-    ``device_type`` ("cuda" or "cpu") at ``samples_per_step`` trained samples a step and
-    ``subrays`` rays a pixel (see the module docstring): main's start (100 steps, no open grid,
-    every point's density) unless the steps that meet :data:`START_PIXEL_SHARE` of the training
-    pixels, at :data:`NOMINAL_SAMPLES_PER_RAY`, are more than that."""
+    ``device_type`` ("cuda" or "cpu") at ``samples_per_step`` trained samples a step (one
+    rank's) and ``subrays`` rays a pixel (see the module docstring): main's start (100 steps, no
+    open grid, every point's density) unless the steps that meet :data:`START_PIXEL_SHARE` of
+    the training pixels, at :data:`NOMINAL_SAMPLES_PER_RAY`, are more than that; at most
+    :data:`CAPTURE_WARMUP_STEPS`, and a tenth of ``budget_steps`` where the run counts steps
+    (a time budget's steps are not known before it runs)."""
     if not bounded_capture(scene, contraction) or device_type != "cuda":
         return WARMUP_STEPS, 0, False
     images = scene.train.images
     pixels = images.shape[0] * images.shape[1] * images.shape[2]
     pixels_per_step = samples_per_step / (subrays * NOMINAL_SAMPLES_PER_RAY)
-    steps = min(round(START_PIXEL_SHARE * pixels / pixels_per_step), CAPTURE_WARMUP_STEPS)
+    longest = CAPTURE_WARMUP_STEPS if budget_steps is None else min(CAPTURE_WARMUP_STEPS, budget_steps // 10)
+    steps = min(round(START_PIXEL_SHARE * pixels / pixels_per_step), longest)
     if steps <= WARMUP_STEPS:
         return WARMUP_STEPS, 0, False
     return steps, steps, True
