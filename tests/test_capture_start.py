@@ -1,6 +1,6 @@
 """A bounded capture's start on CUDA (``capture_start``): a learning-rate warm-up, an open occupancy
 grid and seen-only refreshes lasting until the batches have met a share of the training pixels;
-every other run, and a capture whose share takes no more than main's warm-up, starts as main."""
+a capture whose share takes no more than the usual warm-up starts as every other run."""
 
 import dataclasses
 from types import SimpleNamespace
@@ -15,7 +15,7 @@ from ngp_warp.training.config import TrainConfig, resolve_defaults
 from ngp_warp.training.scene_defaults import (CAPTURE_WARMUP_STEPS, NOMINAL_SAMPLES_PER_RAY, START_PIXEL_SHARE,
                                               WARMUP_STEPS, capture_start)
 
-MAIN = (WARMUP_STEPS, 0, False)
+USUAL_START = (WARMUP_STEPS, 0, False)
 
 
 @pytest.fixture(scope="module")
@@ -33,8 +33,8 @@ def test_the_start_lasts_until_the_batches_have_met_a_share_of_the_pixels(n, hei
     samples, subrays = 1 << 18, 4
     steps = START_PIXEL_SHARE * n * height * width / (samples / (subrays * NOMINAL_SAMPLES_PER_RAY))
     start = capture_start(_sized(n, height, width), None, "cuda", samples, subrays)
-    if steps <= WARMUP_STEPS:  # small images: main's start
-        assert start == MAIN
+    if steps <= WARMUP_STEPS:  # small images: every other run's start
+        assert start == USUAL_START
     else:
         expected = min(round(steps), CAPTURE_WARMUP_STEPS)
         assert start == (expected, expected, True)
@@ -44,9 +44,9 @@ def test_the_start_lasts_until_the_batches_have_met_a_share_of_the_pixels(n, hei
 def test_other_runs_start_as_main():
     fox = _sized(43, 1920, 1080)
     assert capture_start(fox, None, "cuda", 1 << 18, 4)[0] == CAPTURE_WARMUP_STEPS
-    assert capture_start(fox, "l2", "cuda", 1 << 18, 4) == MAIN  # contracted
-    assert capture_start(fox, None, "cpu", 1 << 15, 1) == MAIN  # the CPU
-    assert capture_start(_sized(43, 1920, 1080, "nerf-synthetic"), None, "cuda", 1 << 18, 4) == MAIN
+    assert capture_start(fox, "l2", "cuda", 1 << 18, 4) == USUAL_START  # contracted
+    assert capture_start(fox, None, "cpu", 1 << 15, 1) == USUAL_START  # the CPU
+    assert capture_start(_sized(43, 1920, 1080, "nerf-synthetic"), None, "cuda", 1 << 18, 4) == USUAL_START
     # more samples a step meet more pixels: the same share in fewer steps
     assert capture_start(_sized(131, 400, 400), None, "cuda", 1 << 19, 4)[0] < \
         capture_start(_sized(131, 400, 400), None, "cuda", 1 << 18, 4)[0]
@@ -55,7 +55,7 @@ def test_other_runs_start_as_main():
 def test_a_step_budget_holds_the_start_to_a_tenth_of_it():
     fox = _sized(43, 1920, 1080)
     assert capture_start(fox, None, "cuda", 1 << 18, 4, budget_steps=1500) == (150, 150, True)
-    assert capture_start(fox, None, "cuda", 1 << 18, 4, budget_steps=900) == MAIN  # a tenth is under main's 100
+    assert capture_start(fox, None, "cuda", 1 << 18, 4, budget_steps=900) == USUAL_START  # a tenth is under the usual 100
     assert capture_start(fox, None, "cuda", 1 << 18, 4, budget_steps=20_000)[0] == CAPTURE_WARMUP_STEPS
 
 
@@ -69,7 +69,7 @@ def test_resolved_settings_and_what_the_user_sets(capture):
     resolved = resolve_defaults(TrainConfig(**TINY_BATCHES), capture, "cuda")
     assert (resolved.lr_warmup, resolved.occupancy_open_steps, resolved.grid_seen_only) == (steps, steps, True)
     resolved = resolve_defaults(TrainConfig(**TINY_BATCHES), capture, "cpu")
-    assert (resolved.lr_warmup, resolved.occupancy_open_steps, resolved.grid_seen_only) == MAIN
+    assert (resolved.lr_warmup, resolved.occupancy_open_steps, resolved.grid_seen_only) == USUAL_START
     asked = TrainConfig(**TINY_BATCHES, lr_warmup=300, occupancy_open_steps=0, grid_seen_only=False)
     resolved = resolve_defaults(asked, capture, "cuda")
     assert (resolved.lr_warmup, resolved.occupancy_open_steps, resolved.grid_seen_only) == (300, 0, False)
@@ -81,4 +81,4 @@ def test_a_checkpoint_without_the_start_settings_trained_with_mains(capture):
     for key in ("lr_warmup", "occupancy_open_steps", "grid_seen_only"):
         del saved[key]
     config = _train_config("ck.pt", saved, 0.1)
-    assert (config.lr_warmup, config.occupancy_open_steps, config.grid_seen_only) == MAIN
+    assert (config.lr_warmup, config.occupancy_open_steps, config.grid_seen_only) == USUAL_START
