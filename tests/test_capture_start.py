@@ -1,6 +1,6 @@
-"""A bounded capture's start on CUDA (``capture_start``): a learning-rate warm-up, an open occupancy
-grid and seen-only refreshes lasting until the batches have met a share of the training pixels;
-a capture whose share takes no more than the usual warm-up starts as every other run."""
+"""A bounded capture's start on CUDA (``capture_start``): a learning-rate warm-up and an open
+occupancy grid lasting until the batches have met a share of the training pixels, and seen-only
+refreshes; a capture whose share takes no more than the usual warm-up starts as every other run."""
 
 import dataclasses
 from types import SimpleNamespace
@@ -28,17 +28,17 @@ def _sized(n: int, height: int, width: int, source: str = "colmap"):
     return SimpleNamespace(source=source, train=SimpleNamespace(images=torch.zeros(n, height, width, 3, dtype=torch.uint8)))
 
 
-@pytest.mark.parametrize("n, height, width", [(43, 1920, 1080), (131, 400, 400), (52, 100, 100), (300, 100, 100)])
-def test_the_start_lasts_until_the_batches_have_met_a_share_of_the_pixels(n, height, width):
-    samples, subrays = 1 << 18, 4
-    steps = START_PIXEL_SHARE * n * height * width / (samples / (subrays * NOMINAL_SAMPLES_PER_RAY))
-    start = capture_start(_sized(n, height, width), None, "cuda", samples, subrays)
-    if steps <= WARMUP_STEPS:  # small images: every other run's start
-        assert start == USUAL_START
-    else:
-        expected = min(round(steps), CAPTURE_WARMUP_STEPS)
-        assert start == (expected, expected, True)
-    assert (start[0] == CAPTURE_WARMUP_STEPS) == ((n, height) == (43, 1920))  # fox's size takes the longest
+# (images, height, width) → steps of the start at 2^18 samples a step of 2 × 2 sub-rays (4096
+# pixels a step): fox's size 1088 steps, held to 1000; 400 × 400 captures 255.9; a round 100
+# steps or fewer is the usual start
+@pytest.mark.parametrize("n, height, width, steps", [
+    (43, 1920, 1080, CAPTURE_WARMUP_STEPS), (131, 400, 400, 256), (101, 256, 320, 101),
+    (100, 256, 320, None), (52, 100, 100, None), (300, 100, 100, None)])
+def test_the_start_lasts_until_the_batches_have_met_a_share_of_the_pixels(n, height, width, steps):
+    start = capture_start(_sized(n, height, width), None, "cuda", 1 << 18, 4)
+    assert start == (USUAL_START if steps is None else (steps, steps, True))
+    share = START_PIXEL_SHARE * n * height * width / ((1 << 18) / (4 * NOMINAL_SAMPLES_PER_RAY))
+    assert steps is None or steps == min(round(share), CAPTURE_WARMUP_STEPS)  # the table above is the rule's
 
 
 def test_other_runs_start_as_main():
@@ -69,6 +69,11 @@ def test_resolved_settings_and_what_the_user_sets(capture):
     resolved = resolve_defaults(TrainConfig(**TINY_BATCHES), capture, "cuda")
     assert (resolved.lr_warmup, resolved.occupancy_open_steps, resolved.grid_seen_only) == (steps, steps, True)
     resolved = resolve_defaults(TrainConfig(**TINY_BATCHES), capture, "cpu")
+    assert (resolved.lr_warmup, resolved.occupancy_open_steps, resolved.grid_seen_only) == USUAL_START
+    # a step budget holds the start to a tenth of it through the config's own budget
+    resolved = resolve_defaults(TrainConfig(**TINY_BATCHES, steps=1300), capture, "cuda")
+    assert (resolved.lr_warmup, resolved.occupancy_open_steps, resolved.grid_seen_only) == (130, 130, True)
+    resolved = resolve_defaults(TrainConfig(**TINY_BATCHES, steps=1000), capture, "cuda")
     assert (resolved.lr_warmup, resolved.occupancy_open_steps, resolved.grid_seen_only) == USUAL_START
     asked = TrainConfig(**TINY_BATCHES, lr_warmup=300, occupancy_open_steps=0, grid_seen_only=False)
     resolved = resolve_defaults(asked, capture, "cuda")

@@ -108,7 +108,7 @@ def test_pinhole_border_error_is_how_far_the_lens_moves_a_border_pixel():
 
 
 def test_training_refreshes_count_what_the_training_rays_can_sample(tmp_path):
-    """With grid_seen_only (off by default), the trainer tests points against its training cameras
+    """With grid_seen_only, the trainer tests points against its training cameras
     at the march's near: a refresh from the same weights and draws keeps every density but those
     of unseen points, which it zeroes."""
     from ngp_warp.data.loading import load_scene

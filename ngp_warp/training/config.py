@@ -63,7 +63,8 @@ class TrainConfig:
                                         # can sample (some training image holds them, past the near);
                                         # pinhole and OpenCV lenses (fisheye: ignored); it tests
                                         # the starting poses (camera_refinement moves them); None:
-                                        # on in a bounded capture's start on CUDA
+                                        # on, for the whole run, where a bounded capture on CUDA
+                                        # starts slowly (scene_defaults.capture_start)
     mlp_precision: str = "bf16"         # CUDA only (the CPU runs fp32): "bf16" autocast inside the
                                         # field's graphs, "tf32" matmuls, or "fp32"
     prune: bool = True                  # train only on samples that composite (no-grad σ pass first)
@@ -275,7 +276,8 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     """``config``, checked, or a copy with the settings left to None or "auto" filled in for the
     device (:func:`device_defaults`) and the scene (:mod:`ngp_warp.training.scene_defaults`: the
     contraction, the field's box, the cone angle, the occupancy threshold, the distortion weight,
-    the near distance and the appearance code size; the finest resolution, by
+    the near distance, the start (warm-up, open grid, seen-only refreshes) and the appearance
+    code size; the finest resolution, by
     :func:`pixel_matched_resolution`), so that checkpoints store the values used. Raises
     ValueError naming a setting out of range."""
     config.check()

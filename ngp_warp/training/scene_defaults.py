@@ -36,10 +36,10 @@ learned environment's starting colour.
   the sky gained. Contracted scenes, NeRF-synthetic renders and fisheye captures keep the
   scene's near.
 * The start of a bounded capture on CUDA: until the batches have met about 5 % of the training
-  pixels (at most 1000 steps), the learning rate warms up, the occupancy grid culls no visible
-  cell, and its refreshes count density only where a training ray can sample
-  (``grid_seen_only``); a capture whose 5 % takes 100 steps or fewer starts as every other run
-  (a 100-step warm-up). Early in a high-resolution capture's training, when the batches have
+  pixels (at most 1000 steps), the learning rate warms up and the occupancy grid culls no
+  visible cell; such a run's grid refreshes also count density only where a training ray can
+  sample (``grid_seen_only``), for the whole run. A capture whose 5 % takes 100 steps or fewer
+  starts as every other run (a 100-step warm-up, every point's density). Early in a high-resolution capture's training, when the batches have
   met a few per cent of its pixels, the finest levels can put an opaque blob just past a few
   training cameras' near for some images' rows, which held-out views near them see (fox's
   view 0012 at 16–27 dB, in about one run of five); the slow start keeps it away, and the open
