@@ -40,7 +40,7 @@ import sys  # noqa: E402
 
 import ngp_warp.ops.graphs as graphs  # noqa: E402
 from ngp_warp._warp_private import _probe  # noqa: E402  (any Warp kernel: its module's class)
-from ngp_warp.training.config import TrainConfig, apply_overrides  # noqa: E402
+from ngp_warp.training.config import TrainConfig, apply_overrides, cpu_sizes  # noqa: E402
 from ngp_warp.training.trainer import Trainer  # noqa: E402
 
 _T_NGP = time.perf_counter()
@@ -110,7 +110,8 @@ def main() -> None:
                  *[arg for setting in args.set for arg in ("--set", setting)]]
         subprocess.run(child, check=True, capture_output=True)
     try:
-        cfg = apply_overrides(TrainConfig(steps=10**9), args.set)
+        base = TrainConfig(steps=10**9)  # the sizes `ngp-warp train` takes on the device; --set wins
+        cfg = apply_overrides(cpu_sizes(base) if args.device == "cpu" else base, args.set)
     except ValueError as e:
         ap.error(str(e))
 
