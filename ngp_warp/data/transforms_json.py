@@ -221,15 +221,17 @@ def named_split(meta: dict, frames: list[Frame], source: Path, base: Path) -> tu
         return {image_path(base, x, f"{source} {name}").resolve() for x in listed}
 
     held = images(key)
-    test = [f for f in frames if f.image.resolve() in held]
+    resolved = [f.image.resolve() for f in frames]
+    test = [f for f, image in zip(frames, resolved) if image in held]
     if not test:
         raise DataError(f"{source}: none of the {len(held)} files {key} names is among the frames read "
                         "(those with an image, within n_frames and the sharpness rule)")
     kept = images("train_filenames") if "train_filenames" in meta else None
-    train = [f for f in frames if (f.image.resolve() in kept if kept is not None else f.image.resolve() not in held)]
+    trained = [image in kept if kept is not None else image not in held for image in resolved]
+    train = [f for f, t in zip(frames, trained) if t]
     if not train:
         raise DataError(f"{source}: no frame left to train on after {key}")
-    both = sum(f.image.resolve() in held for f in train)
+    both = sum(t and image in held for t, image in zip(trained, resolved))
     if both:
         log.warning(f"ngp-warp: {source}: {both} of the {len(test)} frames {key} names are in train_filenames "
                     "too: they are trained on and scored")
