@@ -298,10 +298,9 @@ def resolve_defaults(config: TrainConfig, scene: Scene, device_type: str) -> Tra
     near = capture_near(scene, kind) if config.near is None else config.near
     warmup, open_steps, seen_only = capture_start(scene, kind, device_type, default_target_samples(config, device_type),
                                                   config.supersample ** 2, config.budget()[0])
-    config = dataclasses.replace(config, contraction=kind, aabb_scale=aabb_scale, cone_angle=cone, occupancy_threshold=threshold,
-                                 distortion_weight=distortion, near=near)
     config = dataclasses.replace(
-        config, lr_warmup=warmup if config.lr_warmup is None else config.lr_warmup,
+        config, contraction=kind, aabb_scale=aabb_scale, cone_angle=cone, occupancy_threshold=threshold,
+        distortion_weight=distortion, near=near, lr_warmup=warmup if config.lr_warmup is None else config.lr_warmup,
         occupancy_open_steps=open_steps if config.occupancy_open_steps is None else config.occupancy_open_steps,
         grid_seen_only=seen_only if config.grid_seen_only is None else config.grid_seen_only)
     field_config = config.field
