@@ -30,6 +30,15 @@ class _FieldForward(torch.nn.Module):
         return (p for p in self.field.parameters(recurse) if all(p is not q for q in background))
 
 
+def import_capture_modules() -> None:
+    """Import the module that the backward of a CUDA-graph capture imports on its first call
+    (``torch.autograd.grad`` with given output gradients imports
+    ``torch.fx.experimental.symbolic_shapes``, sympy with it: 0.4 s on a fast host with bytecode
+    written, 3 s where Python compiles it), so that it counts as start-up, not as the first
+    training step. The command line runs it on a thread while the scene's images decode."""
+    import torch.fx.experimental.symbolic_shapes  # noqa: F401
+
+
 class TrainingField:
     """The field as a training step evaluates it. With ``graphs`` (CUDA training with pruning),
     the forward and backward at exactly ``rows`` rows in training mode replay CUDA graphs (one
@@ -48,6 +57,8 @@ class TrainingField:
         self.graphs = graphs
         self.graphed_forward = None  # captured on the first call at ``rows`` rows
         self.graphed_density: GraphedDensity | None = None
+        if graphs:
+            import_capture_modules()
 
     def __call__(self, positions: torch.Tensor, directions: torch.Tensor,
                  image_indices: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
