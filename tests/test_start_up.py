@@ -1,4 +1,4 @@
-"""What a run does before its clock starts: the modules torch's first backward imports."""
+"""What a run does before its clock starts: the module a CUDA-graph capture's backward imports."""
 
 import subprocess
 import sys
@@ -29,3 +29,19 @@ def test_a_graphed_training_field_imports_what_the_captures_backward_would():
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["False", "False", "True"]
 
+
+def test_a_cpu_run_does_not_import_it(tmp_path):
+    # a CPU step's backward (no graphs) never needs the module: the command must not pay for it
+    code = textwrap.dedent(f"""
+        import sys
+        from ngp_warp.cli import main
+        from ngp_warp.data.scene import write_demo_scene
+        write_demo_scene(sys.argv[1], width=16, height=16, n_train=4, n_test=1, supersample=1)
+        code = main(["train", sys.argv[1], "--out", sys.argv[2], "--steps", "2", "--device", "cpu", "--quiet",
+                     "--no-video", "--target-samples", "1024"])
+        print(code, "{SYMBOLIC_SHAPES}" in sys.modules)
+    """)
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "scene"), str(tmp_path / "run")],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[-2:] == ["0", "False"]
