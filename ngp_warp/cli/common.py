@@ -8,7 +8,6 @@ import dataclasses
 import math
 import os
 import sys
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -185,22 +184,15 @@ def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
     :class:`ngp_warp.training.run_folder.RunFolder`)."""
     from ngp_warp.data.loading import load_scene
     from ngp_warp.training.run_folder import RunFolder
-    from ngp_warp.training.train_step import import_capture_modules
+    from ngp_warp.training.train_step import capture_imports_alongside, uses_graphs
 
     device = resolve_device(args.device)
     out = Path(out)
     resume = getattr(args, "resume", False)
     folder = RunFolder(out, resume, args.overwrite, ("--resume" if hasattr(args, "resume") else None, "--overwrite"))
-    # What the CUDA graphs' capture imports, imported while the images decode (a thread: done
-    # in the Trainer alone it lengthens the start-up by about twice what it saves the first step).
-    # The decoding imports next to nothing, so the two threads contend for no module's lock.
-    importing = threading.Thread(target=import_capture_modules if device.startswith("cuda") else None,
-                                 name="capture imports", daemon=True)
-    importing.start()
-    try:
+    graphs = config is not None and not resume and uses_graphs(config, device.split(":")[0])
+    with capture_imports_alongside(graphs):  # the graphs' capture imports while the images decode
         scene = None if resume else load_scene(scene_path, downscale=args.downscale or 1)
-    finally:
-        importing.join()
     created = not out.exists()
     out = writable_dir(out)
     try:

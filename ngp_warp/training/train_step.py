@@ -3,7 +3,9 @@ control, and the step's phases as replaceable calls (:class:`StepPhases`, for ti
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -33,10 +35,38 @@ class _FieldForward(torch.nn.Module):
 def import_capture_modules() -> None:
     """Import the module that the backward of a CUDA-graph capture imports on its first call
     (``torch.autograd.grad`` with given output gradients imports
-    ``torch.fx.experimental.symbolic_shapes``, sympy with it: 0.4 s on a fast host with bytecode
-    written, 3 s where Python compiles it), so that it counts as start-up, not as the first
-    training step. The command line runs it on a thread while the scene's images decode."""
+    ``torch.fx.experimental.symbolic_shapes``, sympy with it: about 0.45 s on a fast host with
+    bytecode written, 3 s where Python compiles it), so that it counts as start-up, not as the
+    first training step."""
     import torch.fx.experimental.symbolic_shapes  # noqa: F401
+
+
+def uses_graphs(config, device_type: str) -> bool:
+    """Whether a training step with ``config`` (a :class:`~ngp_warp.training.config.TrainConfig`)
+    on a ``device_type`` device replays CUDA graphs: CUDA training with pruning and ``cuda_graph``."""
+    return bool(config.cuda_graph and config.prune and device_type == "cuda")
+
+
+def _import_capture_modules_quietly() -> None:
+    try:
+        import_capture_modules()
+    except Exception:  # the graphed TrainingField imports it again, and raises it there
+        pass
+
+
+@contextlib.contextmanager
+def capture_imports_alongside(wanted: bool):
+    """Within, when ``wanted``: :func:`import_capture_modules` on a daemon thread (the command
+    line loads the scene meanwhile), joined when the block ends without an error; an error leaves
+    it running rather than wait for it. On its own thread it costs the start-up little: imported
+    by the Trainer alone, the start-up grew by twice what the first step saved (RESULTS.md)."""
+    if not wanted:
+        yield
+        return
+    thread = threading.Thread(target=_import_capture_modules_quietly, name="capture imports", daemon=True)
+    thread.start()
+    yield
+    thread.join()
 
 
 class TrainingField:

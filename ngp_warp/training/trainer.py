@@ -32,7 +32,7 @@ from ngp_warp.ops.ray_loss import ray_loss
 from ngp_warp.outputs.renderer import render_view
 from ngp_warp.training.scene_defaults import start_environment, with_backdrop_alpha
 from ngp_warp.training.train_step import (HostCopy, RayCount, StepPhases, TrainingField, backward, pixels_kept,
-                                         rays_kept)
+                                         rays_kept, uses_graphs)
 
 READOUT_EVERY = 10  # steps between progress readouts (each copies the loss to the host, read at the next)
 
@@ -77,8 +77,7 @@ class Trainer:
         self.weights = FieldOptimizer(self.field, cfg.lr, cfg.weight_decay, cfg.weight_average, cfg.lazy_table_adam,
                                       cfg.lr_warmup)
         self.cameras, self.camera_adam = self._camera_refinement(cfg)
-        graphs = cfg.cuda_graph and cfg.prune and self.device.type == "cuda"
-        self.training_field = TrainingField(self.field, self.target_samples, graphs)
+        self.training_field = TrainingField(self.field, self.target_samples, uses_graphs(cfg, self.device.type))
         self.step_count = 0
         self.train_seconds = 0.0
         self._readout = HostCopy(2, self.device)  # a readout's loss and mse, on their way to the host
