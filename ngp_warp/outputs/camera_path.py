@@ -16,7 +16,7 @@ import torch
 
 from ngp_warp.data.data_error import short
 from ngp_warp.data.transforms_json import NGP_OFFSET, NGP_SCALE, ngp_scale_offset, read_json, transforms_file
-from ngp_warp.outputs.nerfstudio_frame import from_dataparser_frame, read_dataparser_transform
+from ngp_warp.outputs.nerfstudio_frame import from_dataparser_frame, orthonormal_error, read_dataparser_transform
 
 MAX_FRAMES = 100_000  # a video's frames: nearly an hour at 30 fps
 MAX_SIDE = 16384  # a frame's width and height in pixels
@@ -174,7 +174,7 @@ def nerfstudio_path(meta: dict, where: str) -> CameraPath:
         raise ValueError(f"{where}: camera_to_world must hold 16 finite numbers per camera")
     m = m.reshape(-1, 4, 4)
     rotation = m[:, :3, :3]
-    error = (rotation.transpose(1, 2) @ rotation - torch.eye(3, dtype=torch.float64)).abs().amax((1, 2))
+    error = orthonormal_error(rotation)
     bottom = (m[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)).abs().amax(1)
     if (error > 0.02).any() or (bottom > 1e-6).any():  # as training's poses: a rigid pose, row 4 = 0 0 0 1
         k = int(torch.nonzero((error > 0.02) | (bottom > 1e-6))[0])

@@ -35,9 +35,16 @@ def read_dataparser_transform(path: str | Path, scene: str | Path | None = None)
     applied, applied_scale = _applied_transform(scene)
     transform = (_homogeneous(transform) @ torch.linalg.inv(_homogeneous(applied)))[:3]
     rotation = transform[:, :3]
-    if (rotation.T @ rotation - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-4 or torch.det(rotation) < 0:
+    if orthonormal_error(rotation) > 1e-4 or torch.det(rotation) < 0:
         raise ValueError(f"{path}: transform is not a rotation and a translation")
     return transform, scale / applied_scale
+
+
+def orthonormal_error(rotation: torch.Tensor) -> torch.Tensor:
+    """max |RᵀR − I| of each [..., 3, 3] float64 matrix R → [...]: 0 for a rotation (or a
+    reflection), larger for a scaled or sheared one."""
+    eye = torch.eye(3, dtype=rotation.dtype)
+    return (rotation.transpose(-1, -2) @ rotation - eye).abs().amax((-2, -1))
 
 
 NERFSTUDIO_COLMAP_APPLIED = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]
@@ -74,4 +81,3 @@ def from_dataparser_frame(c2w: torch.Tensor, transform: torch.Tensor, scale: flo
     turned = rotation.T @ c2w[:, :, :3]
     position = (c2w[:, :, 3] / scale - shift) @ rotation  # Rᵀ v for each row v
     return torch.cat([turned, position[:, :, None]], -1)
-
