@@ -132,10 +132,11 @@ def test_an_interrupted_run_keeps_its_pending_readout(tiny_scene, tmp_path, monk
     assert [row[0] for row in trainer.curve] == [1, 10, 20]  # what the interrupt's checkpoint saves
 
 
-def test_checkpoint_written_behind_holds_the_weights_of_the_call(tiny_scene, tmp_path):
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_checkpoint_written_behind_holds_the_weights_of_the_call(tiny_scene, tmp_path, device):
     from concurrent.futures import ThreadPoolExecutor
 
-    trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cpu")
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device=device)
     trainer.train(show_progress=False)
     save_checkpoint(trainer, tmp_path / "now.pt", tiny_scene, 1)
     claims = []

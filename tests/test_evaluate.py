@@ -112,3 +112,33 @@ def test_a_weight_average_block_inside_another_leaves_the_field_alone(tmp_path):
         worker.join()
         seen.append(torch.equal(table, marked))
     assert seen == [True, True] and torch.equal(table, live)
+
+
+def test_background_writes_use_their_threads_wait_for_every_write_and_raise_the_first_failure(monkeypatch):
+    import ngp_warp.outputs.evaluate as evaluate_module
+
+    assert 2 <= evaluate_module.write_workers() <= 6
+    monkeypatch.setattr(evaluate_module, "cpu_threads", lambda: 64)
+    assert evaluate_module.write_workers() == 6  # half the cores, at most 6
+    monkeypatch.setattr(evaluate_module, "cpu_threads", lambda: 1)
+    assert evaluate_module.write_workers() == 2
+
+    written, threads, all_in = [], set(), threading.Barrier(3, timeout=30)
+
+    def write(k):
+        if k < 3:
+            all_in.wait()  # three writes at once: three threads
+        threads.add(threading.current_thread().name)
+        written.append(k)
+
+    with evaluate_module.BackgroundWrites(workers=3) as writes:
+        for k in range(20):  # more than the queue holds (12): submit waits for the oldest
+            writes.submit(write, k)
+    assert sorted(written) == list(range(20)) and len(threads) == 3
+
+    def fails(k):
+        raise OSError(f"disk full at {k}")
+
+    with pytest.raises(OSError, match="disk full at 0"):
+        with evaluate_module.BackgroundWrites(workers=2) as writes:
+            writes.submit(fails, 0)

@@ -351,6 +351,31 @@ def test_host_copy_reads_the_values_of_its_start_not_later_ones(device):
     assert copy.read() == pytest.approx(expected, rel=1e-6) and not copy.pending
 
 
+def test_training_seconds_count_the_loops_own_work_but_not_checkpoints(tiny_scene, monkeypatch):
+    import time
+
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cpu")
+    show, step, stepped = trainer._show_readout, trainer.step, []
+
+    def slow_readout(bar):  # the loop's work between steps: 0.05 s a call
+        time.sleep(0.05)
+        show(bar)
+
+    def timed_step(progress_done):
+        before = trainer.train_seconds
+        stats = step(progress_done)
+        stepped.append(trainer.train_seconds - before)
+        return stats
+
+    monkeypatch.setattr(trainer, "_show_readout", slow_readout)
+    monkeypatch.setattr(trainer, "step", timed_step)
+    trainer.train(show_progress=False, checkpoint=lambda: time.sleep(0.2), checkpoint_every=0.0)
+    # readouts at steps 1, 10 and 20, each reads twice in the loop (the last readout, then
+    # before its checkpoint): 0.3 s counted; the three checkpoints' 0.6 s not
+    outside_steps = trainer.train_seconds - sum(stepped)
+    assert len(stepped) == 20 and 0.3 <= outside_steps < 0.45
+
+
 def test_a_time_budget_s_bar_ends_at_its_total(tiny_scene, monkeypatch):
     import io
     import warnings

@@ -61,8 +61,9 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
     """Write ``path`` atomically (temporary file, then rename); :class:`NonFiniteWeights`,
     writing nothing, when the field's weights hold NaN or infinity. ``before_write`` is called
     once the weights are known good, before anything is written. With ``writer`` the record is
-    copied to the host here and written on that thread, while the caller goes on: the returned
-    future's ``result()`` waits for the file (and raises what failed)."""
+    copied here (on its device) and brought to the host and written on that thread, while the
+    caller goes on: the returned future's ``result()`` waits for the file (and raises what
+    failed)."""
     state = {
         "format": FORMAT,
         "scene": {"path": str(Path(scene_path).resolve()), "downscale": int(downscale),
@@ -77,7 +78,9 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
     if writer is None:
         _write(state, Path(path))
         return None
-    return writer.submit(_write, _host_copy(state), Path(path))
+    snapshot = _copied(state, lambda t: t.detach().clone())  # on the device: a copy in a fraction of a ms
+    ready = torch.cuda.current_stream(trainer.device).record_event() if trainer.device.type == "cuda" else None
+    return writer.submit(_write_snapshot, snapshot, trainer.device, ready, Path(path))
 
 
 def _write(state: dict, path: Path) -> None:
@@ -85,15 +88,27 @@ def _write(state: dict, path: Path) -> None:
         torch.save(state, tmp)
 
 
-def _host_copy(record):
-    """``record`` with every tensor copied to the CPU (new storage also for CPU tensors), so that
-    training or evaluation may change the originals while it is written."""
+def _write_snapshot(snapshot: dict, device: torch.device, ready: torch.cuda.Event | None, path: Path) -> None:
+    """Write a copy of the state that nothing else holds; on CUDA (``ready``: an event after
+    the copy, on ``device``) it comes to the host first on a stream of this thread's own, while
+    the caller's stream goes on (lego's state takes 0.1–0.2 s to reach the host on an H200)."""
+    if ready is not None:
+        stream = torch.cuda.Stream(device)
+        with torch.cuda.stream(stream):
+            stream.wait_event(ready)
+            snapshot = _copied(snapshot, lambda t: t.to("cpu"))  # waits for each copy
+    _write(snapshot, path)
+
+
+def _copied(record, copy: Callable[[torch.Tensor], torch.Tensor]):
+    """``record`` (dicts, lists and tuples of tensors and other values) with ``copy`` of each
+    tensor in place of it."""
     if isinstance(record, torch.Tensor):
-        return record.detach().to("cpu", copy=True)
+        return copy(record)
     if isinstance(record, dict):
-        return {k: _host_copy(v) for k, v in record.items()}
+        return {k: _copied(v, copy) for k, v in record.items()}
     if isinstance(record, (list, tuple)):
-        return type(record)(_host_copy(v) for v in record)
+        return type(record)(_copied(v, copy) for v in record)
     return record
 
 

@@ -69,6 +69,10 @@ def capture_imports_alongside(wanted: bool):
     thread.join()
 
 
+class TrainingDiverged(RuntimeError):
+    """The loss became NaN or infinite; the message is one line naming the step."""
+
+
 class TrainingField:
     """The field as a training step evaluates it. With ``graphs`` (CUDA training with pruning),
     the forward and backward at exactly ``rows`` rows in training mode replay CUDA graphs (one
