@@ -132,11 +132,10 @@ def test_an_interrupted_run_keeps_its_pending_readout(tiny_scene, tmp_path, monk
     assert [row[0] for row in trainer.curve] == [1, 10, 20]  # what the interrupt's checkpoint saves
 
 
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
-def test_checkpoint_written_behind_holds_the_weights_of_the_call(tiny_scene, tmp_path, device):
+def test_checkpoint_written_behind_holds_the_weights_of_the_call(tiny_scene, tmp_path):
     from concurrent.futures import ThreadPoolExecutor
 
-    trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device=device)
+    trainer = Trainer(load_scene(tiny_scene), tiny_config(20), device="cpu")
     trainer.train(show_progress=False)
     save_checkpoint(trainer, tmp_path / "now.pt", tiny_scene, 1)
     claims = []
@@ -152,6 +151,34 @@ def test_checkpoint_written_behind_holds_the_weights_of_the_call(tiny_scene, tmp
     now, behind = read_checkpoint(tmp_path / "now.pt"), read_checkpoint(tmp_path / "behind.pt")
     assert_same_state({k: v for k, v in now.items() if k != "rng"}, {k: v for k, v in behind.items() if k != "rng"})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["behind.pt", "now.pt"]  # no temporary left behind
+
+
+@pytest.mark.cuda
+def test_a_gpu_checkpoint_written_behind_waits_for_its_device_copy(tmp_path):
+    # the copy to the host runs on the writer's own stream: it must wait for the device copy,
+    # which here lands late (the GPU busy first), and not see the weights changed after the call
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ngp_warp.data.scene import write_demo_scene
+
+    scene = write_demo_scene(tmp_path / "scene", width=32, height=32, n_train=8, n_test=2, supersample=1,
+                             device="cuda")  # rendered on the GPU: no CPU kernels needed
+    trainer = Trainer(load_scene(scene), tiny_config(10), device="cuda")
+    trainer.train(show_progress=False)
+    save_checkpoint(trainer, tmp_path / "now.pt", scene, 1)
+
+    def busy():  # about 0.1 s of GPU time queued after the weights' check, before the device copy
+        torch.cuda._sleep(200_000_000)
+
+    with ThreadPoolExecutor(1) as writer:
+        written = save_checkpoint(trainer, tmp_path / "behind.pt", scene, 1, before_write=busy, writer=writer)
+        with torch.no_grad():
+            for t in trainer.field.state_dict().values():
+                if t.is_floating_point():
+                    t.add_(1.0)
+        written.result()
+    now, behind = read_checkpoint(tmp_path / "now.pt"), read_checkpoint(tmp_path / "behind.pt")
+    assert_same_state({k: v for k, v in now.items() if k != "rng"}, {k: v for k, v in behind.items() if k != "rng"})
 
 
 def test_checkpoint_without_a_weight_average_renders_its_weights(tiny_scene, tmp_path):

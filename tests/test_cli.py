@@ -167,6 +167,24 @@ def test_ctrl_c_in_the_evaluation_keeps_the_checkpoint_and_names_eval(scene, tmp
     assert read_checkpoint(out / "checkpoint.pt")["step"] == 2
 
 
+def test_ctrl_c_in_the_evaluation_says_when_the_checkpoint_failed(scene, tmp_path, capsys, monkeypatch):
+    from ngp_warp.outputs import evaluate
+    from ngp_warp.training import checkpoint
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    def disk_full(state, path):
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(evaluate, "evaluate", interrupted)
+    monkeypatch.setattr(checkpoint, "_write", disk_full)
+    out = tmp_path / "run"
+    assert main(["train", str(scene), "--out", str(out), "--steps", "2", "--no-video", *FAST]) == 130
+    err = capsys.readouterr().err
+    assert "the checkpoint was not written (No space left on device)" in err and "is kept" not in err
+
+
 def test_bad_numbers_and_video_names_are_refused(scene, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["train", str(scene), "--out", str(tmp_path / "o"), "--frames", "0"])

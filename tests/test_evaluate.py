@@ -120,6 +120,8 @@ def test_background_writes_use_their_threads_wait_for_every_write_and_raise_the_
     assert 2 <= evaluate_module.write_workers() <= 6
     monkeypatch.setattr(evaluate_module, "cpu_threads", lambda: 64)
     assert evaluate_module.write_workers() == 6  # half the cores, at most 6
+    monkeypatch.setattr(evaluate_module, "cpu_threads", lambda: 8)
+    assert evaluate_module.write_workers() == 4
     monkeypatch.setattr(evaluate_module, "cpu_threads", lambda: 1)
     assert evaluate_module.write_workers() == 2
 

@@ -302,8 +302,10 @@ def _save_and_evaluate(trainer, save, out: Path, scene_path: Path, downscale: in
         try:
             metrics = evaluate(trainer, out, show_progress=not quiet)
         except KeyboardInterrupt:
-            print(f"ngp-warp: evaluation stopped; the trained checkpoint is kept (evaluate it with ngp-warp eval "
-                  f"{out})", file=sys.stderr)
+            failed = written.exception()  # once the write has ended
+            kept = f"the trained checkpoint is kept (evaluate it with ngp-warp eval {out})" if failed is None \
+                else f"the checkpoint was not written ({failed})"
+            print(f"ngp-warp: evaluation stopped; {kept}", file=sys.stderr)
             raise
         written.result()
     return metrics
