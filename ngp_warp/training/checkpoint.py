@@ -79,10 +79,8 @@ def save_checkpoint(trainer: Trainer, path: Path, scene_path: Path, downscale: i
         _write(state, Path(path))
         return None
     snapshot = _copied(state, lambda t: t.detach().clone())  # on the device: a copy in a fraction of a ms
-    device, ready = trainer.device, None
-    if device.type == "cuda":
-        device = torch.device("cuda", torch.cuda.current_device() if device.index is None else device.index)
-        ready = torch.cuda.current_stream(device).record_event()
+    device = next(trainer.field.parameters()).device  # a CUDA tensor's device names its index
+    ready = torch.cuda.current_stream(device).record_event() if device.type == "cuda" else None
     return writer.submit(_write_snapshot, [snapshot], device, ready, Path(path))
 
 
