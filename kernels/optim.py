@@ -68,7 +68,9 @@ def lazy_adam_step(
 
 
 # Bring every average up to date and rebase the log-decays to 0 (the host sets L ← 0), so that
-# float32 L stays small:  a ← p + (a − p) exp(L − synced),  synced ← 0
+# float32 L stays small:  a ← p + (a − p) exp(L − synced),  synced ← 0. An entry already up to
+# date (synced = L) is left as it is: in float32 p + (a − p) need not round back to a, and a
+# second flush (a checkpoint saved twice) must change nothing.
 @wp.kernel
 def flush_average(
     first: int,
@@ -78,6 +80,8 @@ def flush_average(
     log_now: float,
 ):
     i = first + wp.tid()
-    p = params[i]
-    average[i] = p + (average[i] - p) * wp.exp(log_now - synced[i])
+    behind = log_now - synced[i]
+    if behind != 0.0:
+        p = params[i]
+        average[i] = p + (average[i] - p) * wp.exp(behind)
     synced[i] = 0.0

@@ -118,6 +118,24 @@ def test_kept_average_stays_exact_across_log_decay_rebases():
     torch.testing.assert_close(average.double(), ref_average, rtol=0, atol=2e-6)
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_a_second_flush_of_the_kept_average_changes_nothing(device):
+    # the average far from the weights, as a table entry that changed sign: p + (a − p) rounds
+    # away from a where the compiler keeps it (CUDA's fused multiply-add; the CPU build folds it)
+    p = torch.nn.Parameter(torch.randn(20000, device=device))
+    average = 1e-3 * torch.randn(20000, device=device)
+    opt = LazyAdam([p], lr=1e-2)
+    opt.keep_average(p, average)
+    for g in sparse_grads(20000, steps=4, seed=7):
+        p.grad, opt.param_groups[0]["average_decay"] = g.to(device), 0.999
+        opt.step()
+    opt.flush_averages()  # a checkpoint saved
+    once = average.clone()
+    assert not torch.equal(once, p.detach())
+    opt.flush_averages()  # and saved again: the same average, bit for bit
+    torch.testing.assert_close(average, once, rtol=0, atol=0)
+
+
 def test_kept_average_resumes_from_a_state_dict():
     p0 = torch.randn(3000)
     grads = sparse_grads(3000, steps=6, seed=5)
