@@ -16,7 +16,7 @@ from ngp_warp.kernels.occupancy import box_center, box_half, cell_id, is_occupie
 from ngp_warp.kernels.raymarch_funcs import (_MAX_ITERS, _REMARCH, NO_CONTRACTION, MarchConfig, StepSchedule, block_exit,
                                              contracted_point, contracted_step_at, empty_mip, first_step_past,
                                              grid_cell, march_start, mark_step, ray_span, ray_steps, reciprocal,
-                                             step_start, write_sample)
+                                             step_start, store_mask, write_sample)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -24,55 +24,61 @@ wp.set_module_options({"enable_backward": False})
 @wp.func
 def take_cell(
     k: int, k_stop: int, t: float, steps: StepSchedule, t1: float,
-    n: int, cap: int, fill: int, masked: bool, mask: wp.uint64, k_first: int, base: int,
+    n: int, cap: int, fill: int, words: int, mask: wp.uint64, word: int, k_first: int, base: int,
     r: int, o: wp.vec3, d: wp.vec3,
     ray_indices: wp.array(dtype=wp.int64),
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
     positions: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
+    step_masks: wp.array(dtype=wp.uint64),
+    slot: int,
 ):
     """Keep steps k .. k_stop − 1 (all in one occupied cell; t = t_k) while t < t1 and n < cap:
-    the fill writes them as samples base + n onwards, the count with ``masked`` sets their bits
-    k − k_first in ``mask``. Returns the next (k, t, n, mask)."""
+    the fill writes them as samples base + n onwards, the count with step masks (``words`` > 0)
+    sets their bits k − k_first in the segment's mask at ``slot`` (mark_step). Returns the next
+    (k, t, n, mask, word)."""
     while k < k_stop and t < t1 and n < cap:
         t_next = step_start(steps, k + 1)
         if fill != 0:
             write_sample(base + n, r, o, d, t, wp.min(t_next, t1), ray_indices, t_starts, t_ends, positions, directions)
-        elif masked:
-            mask = mark_step(mask, k - k_first)
+        elif words > 0:
+            mask, word = mark_step(step_masks, slot, words, mask, word, k - k_first)
         n += 1
         k += 1
         t = t_next
-    return k, t, n, mask
+    return k, t, n, mask, word
 
 
 @wp.func
 def replay_mask(
-    mask: wp.uint64, k: int, steps: StepSchedule, t1: float, cap: int, base: int,
-    r: int, o: wp.vec3, d: wp.vec3,
+    step_masks: wp.array(dtype=wp.uint64), slot: int, words: int, k: int, steps: StepSchedule, t1: float,
+    cap: int, base: int, r: int, o: wp.vec3, d: wp.vec3,
     ray_indices: wp.array(dtype=wp.int64),
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
     positions: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
 ) -> int:
-    """Fill from the count's step mask: step k + b for each set bit b, at most cap samples from
-    base on. Returns the samples written."""
+    """Fill from the count's step mask (``words`` words from step_masks[slot] on): step k + b
+    for each set bit b, at most cap samples from base on. Returns the samples written."""
     n = int(0)
-    while mask != wp.uint64(0) and n < cap:
-        if (mask & wp.uint64(1)) != wp.uint64(0):
-            write_sample(base + n, r, o, d, step_start(steps, k), wp.min(step_start(steps, k + 1), t1),
-                         ray_indices, t_starts, t_ends, positions, directions)
-            n += 1
-        mask = mask >> wp.uint64(1)
-        k += 1
+    for w in range(words):
+        mask = step_masks[slot + w]
+        kw = k + 64 * w
+        while mask != wp.uint64(0) and n < cap:
+            if (mask & wp.uint64(1)) != wp.uint64(0):
+                write_sample(base + n, r, o, d, step_start(steps, kw), wp.min(step_start(steps, kw + 1), t1),
+                             ray_indices, t_starts, t_ends, positions, directions)
+                n += 1
+            mask = mask >> wp.uint64(1)
+            kw += 1
     return n
 
 
 @wp.func
 def march_segment(
-    k: int, k_end: int, steps: StepSchedule, t1: float, cap: int, fill: int, masked: bool, base: int,
+    k: int, k_end: int, steps: StepSchedule, t1: float, cap: int, fill: int, words: int, base: int,
     r: int, o: wp.vec3, d: wp.vec3, c: wp.vec3, h: wp.vec3,
     bitfield: wp.array(dtype=wp.uint8),
     mips: wp.array(dtype=wp.uint8),
@@ -82,9 +88,12 @@ def march_segment(
     t_ends: wp.array(dtype=float),
     positions: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
+    step_masks: wp.array(dtype=wp.uint64),
+    slot: int,
 ):
     """March steps k .. k_end − 1 of ray r up to t1 (see march_rays): keep the steps in
-    occupied cells, jump over empty blocks. Returns (samples kept, step mask of the count)."""
+    occupied cells, jump over empty blocks. Returns the samples kept; the count with step masks
+    (``words`` > 0) stores the segment's mask at ``slot``."""
     res = cfg.res
     t = step_start(steps, k)
     inv_d = reciprocal(d)
@@ -92,6 +101,7 @@ def march_segment(
     k_first = k
     n = int(0)
     mask = wp.uint64(0)
+    word = int(0)
     iters = int(0)
     while t < t1 and k < k_end and n < cap and iters < _MAX_ITERS:
         iters += 1
@@ -102,15 +112,18 @@ def march_segment(
             # every step whose midpoint lies before the cell's exit is in the cell
             t_leave = block_exit(o, d, inv_d, lower, size, ijk, size)
             k_stop = wp.min(wp.max(k + 1, first_step_past(steps, t_leave)), k_end)
-            k, t, n, mask = take_cell(k, k_stop, t, steps, t1, n, cap, fill, masked, mask, k_first, base,
-                                      r, o, d, ray_indices, t_starts, t_ends, positions, directions)
+            k, t, n, mask, word = take_cell(k, k_stop, t, steps, t1, n, cap, fill, words, mask, word, k_first, base,
+                                            r, o, d, ray_indices, t_starts, t_ends, positions, directions,
+                                            step_masks, slot)
         else:
             mip = empty_mip(mips, level * cfg.mip_cells, ijk, res, cfg.n_mips)
             block = wp.vec3i((ijk[0] >> mip) << mip, (ijk[1] >> mip) << mip, (ijk[2] >> mip) << mip)
             t_leave = block_exit(o, d, inv_d, lower, size, block, size * float(1 << mip))
             k = wp.max(k + 1, first_step_past(steps, t_leave))
             t = step_start(steps, k)
-    return n, mask
+    if fill == 0 and words > 0:
+        store_mask(step_masks, slot, words, mask, word)
+    return n
 
 
 @wp.func
@@ -168,10 +181,12 @@ def march_contracted(
 # Between the passes seg_offsets[1:] becomes the inclusive prefix sum of the (capped) counts.
 # fill = 1: the segment's first seg_offsets[i+1] − seg_offsets[i] samples go to seg_offsets[i]
 # onwards, and ray_offsets[r] = seg_offsets[r·n_seg] (ray_offsets[n_rays] = seg_offsets[-1]).
-# Step masks (when the host passes step_masks): the count pass also stores bit
-# k − j·seg_steps of step_masks[i] for every kept step k, and the fill pass writes the samples
-# from those bits instead of marching again; a segment with a kept step past bit 63 stores
-# _REMARCH and is marched again (the last segment of a ray longer than planned).
+# Step masks (when the host passes step_masks, W = len(step_masks) / items words per segment,
+# W·64 ≥ seg_steps): the count pass also sets bit b = k − j·seg_steps of segment i's mask
+# (word step_masks[i·W + b div 64], bit b mod 64) for every kept step k, and the fill pass writes
+# the samples from those bits instead of marching again; a segment with a kept step past bit
+# W·64 − 1 stores _REMARCH in its first word and is marched again (the last segment of a ray
+# longer than planned).
 # Contraction (cfg.contraction ≥ 0): the grid box (c, h) lives in contracted space and one thread
 # marches a ray over [near, far]: t_{k+1} = t_k + max(Δy / ‖J_C(x_k)(d ⊘ h_in)‖, min(t_k·cone,
 # max_step)), x_k = (o + t_k·d − c_in) ⊘ h_in, Δy = cfg.step; sample k is kept when the cell of
@@ -226,23 +241,25 @@ def march_rays(
             ray_offsets[r + 1] = int(seg_offsets[i + 1])
 
     n = int(0)
-    mask = wp.uint64(0)
-    masked = step_masks.shape[0] > 0
-    if masked and fill != 0:
-        mask = step_masks[i]
+    words = step_masks.shape[0] // (rays_o.shape[0] * n_seg)
+    slot = i * words
+    replay = words > 0 and fill != 0
+    if replay:
+        replay = step_masks[slot] != _REMARCH
     live = t0 < t1 and wp.dot(d, d) > 0.0 and cap > 0
     if live and cfg.contraction != NO_CONTRACTION:
         n = march_contracted(t0, t1, cap, fill, base, r, o, d, c, h, bitfield, cfg, seed,
                              ray_indices, t_starts, t_ends, positions, directions)
-    elif live and masked and fill != 0 and mask != _REMARCH:
-        n = replay_mask(mask, k, ray_steps(t0, cfg, seed, r), t1, cap, base, r, o, d,
+    elif live and replay:
+        n = replay_mask(step_masks, slot, words, k, ray_steps(t0, cfg, seed, r), t1, cap, base, r, o, d,
                         ray_indices, t_starts, t_ends, positions, directions)
     elif live:
-        n, mask = march_segment(k, k_end, ray_steps(t0, cfg, seed, r), t1, cap, fill, masked, base, r, o, d, c, h,
-                                bitfield, mips, cfg, ray_indices, t_starts, t_ends, positions, directions)
+        n = march_segment(k, k_end, ray_steps(t0, cfg, seed, r), t1, cap, fill, words, base, r, o, d, c, h,
+                          bitfield, mips, cfg, ray_indices, t_starts, t_ends, positions, directions,
+                          step_masks, slot)
+    elif fill == 0 and words > 0:
+        store_mask(step_masks, slot, words, wp.uint64(0), 0)
     if fill == 0:
         seg_counts[i] = n
-        if masked:
-            step_masks[i] = mask
         if i == 0:
             seg_offsets[0] = 0

@@ -19,7 +19,7 @@ _FAR = wp.constant(1.0e30)
 # Loop iterations per ray never exceed this (ends degenerate rays, e.g. near-zero directions
 # whose t range float32 steps cannot resolve); sane rays need far fewer (~1024·2^levels).
 _MAX_ITERS = wp.constant(1 << 24)
-# A step mask with every bit set means "march again" (see march_rays).
+# A step mask whose first word has every bit set means "march again" (see march_rays).
 _REMARCH = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 NO_CONTRACTION = wp.constant(-1)  # MarchConfig.contraction without a contraction; else kernels.contraction's L2 / LINF
 
@@ -276,8 +276,29 @@ def write_sample(
 
 
 @wp.func
-def mark_step(mask: wp.uint64, bit: int) -> wp.uint64:
-    """mask with ``bit`` set, or _REMARCH when the bit lies past 63."""
-    if bit < 64:
-        return mask | (wp.uint64(1) << wp.uint64(bit))
-    return _REMARCH
+def mark_step(step_masks: wp.array(dtype=wp.uint64), slot: int, words: int, mask: wp.uint64, word: int,
+              bit: int):
+    """Set ``bit`` of a segment's step mask: ``words`` words from step_masks[slot] on, of which
+    ``mask`` is word ``word`` (held in a register; the words before it are stored, zero where
+    no step was kept). A bit past the last word sets word = ``words`` (march again). Returns
+    (mask, word)."""
+    w = bit >> 6
+    if word >= words or w >= words:
+        return mask, words
+    while word < w:
+        step_masks[slot + word] = mask
+        mask = wp.uint64(0)
+        word += 1
+    return mask | (wp.uint64(1) << wp.uint64(bit - 64 * w)), word
+
+
+@wp.func
+def store_mask(step_masks: wp.array(dtype=wp.uint64), slot: int, words: int, mask: wp.uint64, word: int):
+    """The count's last stores of a segment's step mask (see mark_step): word ``word`` and
+    zeros after it, or _REMARCH in its first word when a kept step lay past its last word."""
+    if word >= words:
+        step_masks[slot] = _REMARCH
+    else:
+        step_masks[slot + word] = mask
+        for w in range(word + 1, words):
+            step_masks[slot + w] = wp.uint64(0)

@@ -229,8 +229,8 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels, cone):
     """Short segments (several threads per ray, as on the GPU) give exactly the samples of one
     thread per ray, with fixed and with cone steps (all three of the cone's phases: fixed,
     growing, max_step), with jitter and caps, and for non-unit directions whose rays outlast the
-    step estimate (the last segment takes the rest). Segments of up to 64 steps fill from the
-    count pass's step masks; a last segment past bit 63 is marched again."""
+    step estimate (the last segment takes the rest). The segments fill from the count pass's step
+    masks (one or more 64-bit words); a last segment past its mask's last bit is marched again."""
     grid = random_grid(levels)
     rays_o, rays_d = random_rays(200, levels)
     rays_d[::3] *= 0.3
@@ -238,21 +238,26 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels, cone):
              dict(step_size=0.02, max_samples_per_ray=9), dict(step_size=0.02, max_samples=3000)]
     for kw in calls:
         kw = {**kw, **cone}
-        results = []
-        for schedule in (raymarch.MarchSchedule(10**9, 1), raymarch.MarchSchedule(7, 40), raymarch.MarchSchedule(40, 40)):
+        results, words = [], []
+        runs = [(raymarch.MarchSchedule(10**9, 1), 0), (raymarch.MarchSchedule(10**9, 1), 8),
+                (raymarch.MarchSchedule(7, 40), 8), (raymarch.MarchSchedule(40, 40), 8),
+                (raymarch.MarchSchedule(150, 40), 8)]
+        for schedule, mask_words in runs:  # the first: one thread a ray, no masks
             monkeypatch.setitem(raymarch.SCHEDULES, "cpu", schedule)
+            monkeypatch.setattr(raymarch, "MASK_WORDS", mask_words)
             n_seg, seg_steps = raymarch._segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"],
                                                   kw.get("cone_angle", 0.0), kw.get("max_step", 1e10), 200)
-            assert (n_seg, seg_steps > 64) == (1, True) or (n_seg > 1 and seg_steps <= 64)  # masks in the split runs
+            words.append(-(-seg_steps // 64))
             torch.manual_seed(3)
             results.append(ray_marching(rays_o, rays_d, grid, MarchOptions(**kw)))
+        assert words[1] > 1 and words[2] == words[3] == 1 and words[4] in (3, 4)  # masks of one and of several words
         one = results[0]
         assert one.n_samples > 1000
-        if "max_samples_per_ray" not in kw and not cone:  # some last segments keep a step past their mask's bit 63
+        if "max_samples_per_ray" not in kw and not cone:  # some last segments keep a step past their mask's last bit
             s = 2.0 ** (levels - 1)
             t0 = raymarch_ref.ray_box(rays_o, rays_d, [-s] * 3, [s] * 3)[0].clamp(min=kw.get("near", 0.0))
             k = (one.t_starts.double() - t0[one.ray_indices]) / kw["step_size"]
-            assert k.max() > (n_seg - 1) * seg_steps + 64
+            assert k.max() > (n_seg - 1) * seg_steps + 64 * words[4]
         if cone and levels == 3:  # every phase of the cone's steps is marched
             dt = (one.t_ends - one.t_starts).double()
             assert dt.min() < 0.0201 and ((dt > 0.021) & (dt < 0.11)).any() and dt.max() > 0.1199

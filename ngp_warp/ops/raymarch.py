@@ -71,6 +71,9 @@ class MarchSchedule:
 SCHEDULES = {"cpu": MarchSchedule(512, 8), "cuda": MarchSchedule(32, 128, 1 << 22)}
 
 
+MASK_WORDS = 16  # a segment's step mask has at most this many 64-bit words (1024 steps: the CPU's segments)
+
+
 def steps_over(t_a: float, t_b: float, step: float, cone_angle: float, max_step: float) -> float:
     """The steps from t_a to t_b ≥ t_a (not rounded) of t_{k+1} = t_k + clip(t_k·cone_angle,
     step, max_step): fixed steps up to step/cone_angle, steps growing by 1 + cone_angle up to
@@ -330,8 +333,10 @@ def ray_marching(
     seg_ints = torch.empty(2 * n_items + 1, dtype=torch.int32, device=dev)  # one allocation for both
     seg_counts, seg_offsets = seg_ints[:n_items], seg_ints[n_items:]
     offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=dev)
-    # Short segments keep their kept steps as bit masks, so the fill need not march again.
-    masks = torch.empty(n_items, dtype=torch.int64, device=dev) if seg_steps <= 64 else None
+    # Segments of up to MASK_WORDS × 64 steps keep their kept steps as bit masks (a word per 64
+    # steps), so the fill need not march again.
+    words = -(-seg_steps // 64)
+    masks = torch.empty(n_items * words, dtype=torch.int64, device=dev) if words <= MASK_WORDS else None
     n_samples = 0
     if n_rays > 0:
         _wp.launch(K.march_rays, n_items, [0, *common, seg_counts, seg_offsets, None, *[None] * 5, masks], device)
@@ -354,7 +359,7 @@ def _fill(n_samples: int, n_rays: int, n_items: int, padded: bool, common: list,
           offsets: torch.Tensor, masks: torch.Tensor | None, device: str) -> RaySamples:
     """The march's fill pass: ``n_samples`` output rows (``padded``: a capacity's, initialised as
     padding) written by the ``n_items`` (ray, segment) threads from the count pass's
-    ``seg_offsets`` [n_items + 1] int32 and step ``masks`` [n_items] int64 (or None); the rays'
+    ``seg_offsets`` [n_items + 1] int32 and step ``masks`` [n_items × words] int64 (or None); the rays'
     ``offsets`` [n_rays + 1] int32 are written too (zeros when nothing was marched)."""
     dev = offsets.device
     ray_indices = _empty_or_full(n_samples, torch.int64, n_rays, padded, dev)
