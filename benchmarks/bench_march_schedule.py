@@ -4,9 +4,9 @@ schedules (:class:`ngp_warp.ops.raymarch.MarchSchedule`), timed alone and inside
     python benchmarks/bench_march_schedule.py RUN --device cuda [--views 20]
         [--schedules 32:128 32:128:4194304 64:128 1000000000:1 32:128:4194304/0]
 
-A schedule is ``SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS][/MASK_WORDS]``: the last part, the
-most 64-bit words of a segment's step mask (:data:`ngp_warp.ops.raymarch.MASK_WORDS`; 0: the
-fill marches again), defaults to the library's. For each, over the first ``--views``
+A schedule is ``SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS][/MASK_WORDS]``
+(:class:`ngp_warp.ops.raymarch.MarchSchedule`; MASK_WORDS, the most 64-bit words of a segment's
+step mask, 0 to fill by marching again, defaults to 1). For each, over the first ``--views``
 test views of the run (all sub-pixel rays of a view in one launch, as the evaluation marches
 them): the segments per ray and threads per launch, ms per march (its count and fill, the device
 synchronised), ms per rendered view (:meth:`Trainer.render_image`, as the evaluation renders it),
@@ -29,17 +29,17 @@ from ngp_warp.outputs.renderer import subpixel_rays
 from ngp_warp.training.checkpoint import load_trainer
 
 
-def schedule(text: str) -> tuple[raymarch.MarchSchedule, int]:
-    """(schedule, mask words) of ``SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS][/MASK_WORDS]``."""
+def schedule(text: str) -> raymarch.MarchSchedule:
+    """The schedule ``SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS][/MASK_WORDS]``."""
     steps, _, words = text.partition("/")
     try:
         parts = [int(v) for v in steps.split(":")]
-        mask_words = int(words) if words else raymarch.MASK_WORDS
+        mask_words = int(words) if words else 1
     except ValueError:
         parts, mask_words = [], -1
     if len(parts) not in (2, 3) or min(parts) < 1 or mask_words < 0:
         raise argparse.ArgumentTypeError(f"expected SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS][/MASK_WORDS], got {text!r}")
-    return raymarch.MarchSchedule(*parts), mask_words
+    return raymarch.MarchSchedule(*parts, mask_words=mask_words)
 
 
 def views_rays(trainer, views: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -92,8 +92,8 @@ def main() -> None:
     step, max_step, _ = raymarch._march_steps(model.march, model.grid)
     march = model.march
     first, rows = None, []  # first: the first schedule's samples of the first view, on the host
-    for sched, mask_words in args.schedules:
-        raymarch.SCHEDULES[kind], raymarch.MASK_WORDS = sched, mask_words
+    for sched in args.schedules:
+        raymarch.SCHEDULES[kind] = sched
         n_seg, seg_steps = raymarch._segments(sched, model.grid, march.near, march.far, step, march.cone_angle,
                                               max_step, rays[0][0].shape[0])
         view = raymarch.ray_marching(*rays[0], model.grid, march, validate=False)  # and the warm-up
@@ -106,15 +106,15 @@ def main() -> None:
         cameras = [split.camera(i) for i in range(len(rays))]
         trainer.render_image(**cameras[0], background=trainer.view_background)
         render_s = timed(sync, lambda: [trainer.render_image(**c, background=trainer.view_background) for c in cameras])
-        rows.append((sched, mask_words, n_seg, seg_steps, n_seg * rays[0][0].shape[0], 1e3 * march_s / len(rays),
+        rows.append((sched, n_seg, seg_steps, n_seg * rays[0][0].shape[0], 1e3 * march_s / len(rays),
                      1e3 * render_s / len(rays), differ))
     print(f"{len(rays)} test views of {args.run} at {split.width}×{split.height}, {trainer.config.supersample}² rays a "
           f"pixel ({rays[0][0].shape[0]} rays a view), device {trainer.device}")
     print("| schedule | segments per ray | steps per segment | threads per launch | ms per march | ms per view | "
           "rays of the first view whose samples differ |\n|---|---:|---:|---:|---:|---:|---:|")
-    for sched, mask_words, n_seg, seg_steps, threads, march_ms, render_ms, differ in rows:
+    for sched, n_seg, seg_steps, threads, march_ms, render_ms, differ in rows:
         spec = (f"{sched.segment_steps}:{sched.max_segments}" + (f":{sched.most_threads}" if sched.most_threads else "")
-                + f"/{mask_words}")
+                + f"/{sched.mask_words}")
         print(f"| {spec} | {n_seg} | {seg_steps} | {threads} | {march_ms:.2f} | {render_ms:.2f} | {differ} |")
 
 

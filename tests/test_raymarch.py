@@ -239,12 +239,10 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels, cone):
     for kw in calls:
         kw = {**kw, **cone}
         results, words = [], []
-        runs = [(raymarch.MarchSchedule(10**9, 1), 0), (raymarch.MarchSchedule(10**9, 1), 8),
-                (raymarch.MarchSchedule(7, 40), 8), (raymarch.MarchSchedule(40, 40), 8),
-                (raymarch.MarchSchedule(150, 40), 8)]
-        for schedule, mask_words in runs:  # the first: one thread a ray, no masks
+        runs = [raymarch.MarchSchedule(10**9, 1, mask_words=0), raymarch.MarchSchedule(10**9, 1, mask_words=8),
+                raymarch.MarchSchedule(7, 40), raymarch.MarchSchedule(40, 40), raymarch.MarchSchedule(150, 40, mask_words=8)]
+        for schedule in runs:  # the first: one thread a ray, no masks
             monkeypatch.setitem(raymarch.SCHEDULES, "cpu", schedule)
-            monkeypatch.setattr(raymarch, "MASK_WORDS", mask_words)
             n_seg, seg_steps = raymarch._segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"],
                                                   kw.get("cone_angle", 0.0), kw.get("max_step", 1e10), 200)
             words.append(-(-seg_steps // 64))

@@ -58,20 +58,23 @@ class MarchSchedule:
     """Threads per ray for fixed steps: a ray's steps are split into segments of at least
     ``segment_steps`` steps, at most ``max_segments`` of them per ray, and with ``most_threads``
     (None: no such bound) no more segments than keep the threads of one launch within it (at
-    least one segment per ray)."""
+    least one segment per ray). A segment of at most ``mask_words`` × 64 steps keeps its kept
+    steps as a bit mask (a word per 64 steps), from which the fill writes the samples instead of
+    marching again."""
 
     segment_steps: int
     max_segments: int
     most_threads: int | None = None
+    mask_words: int = 1
 
 
 # The GPU needs many short segments to fill its threads when a launch marches few rays (a
 # training step's); a view's hundreds of thousands of rays fill it with a few segments each, and
-# every segment costs a ray setup. On the CPU the rays alone already keep every core busy.
-SCHEDULES = {"cpu": MarchSchedule(512, 8), "cuda": MarchSchedule(32, 128, 1 << 22)}
-
-
-MASK_WORDS = 16  # a segment's step mask has at most this many 64-bit words (1024 steps: the CPU's segments)
+# every segment costs a ray setup. On the CPU the rays alone already keep every core busy. The
+# CPU's fill is bound by its march, so its segments (up to 1024 steps) keep masks; the GPU's
+# fill of a view's longer segments is bound by its writes, and a mask of several words there
+# gains nothing (benchmarks/RESULTS.md, "A view's march filled from step masks").
+SCHEDULES = {"cpu": MarchSchedule(512, 8, mask_words=16), "cuda": MarchSchedule(32, 128, 1 << 22)}
 
 
 def steps_over(t_a: float, t_b: float, step: float, cone_angle: float, max_step: float) -> float:
@@ -323,8 +326,8 @@ def ray_marching(
     dev = rays_o.device
     n_rays = rays_o.shape[0]
     device = _wp.device_of(rays_o)
-    n_seg, seg_steps = _segments(SCHEDULES["cpu" if device == "cpu" else "cuda"], grid, near, far, step, cone_angle,
-                                 max_step, n_rays)
+    schedule = SCHEDULES["cpu" if device == "cpu" else "cuda"]
+    n_seg, seg_steps = _segments(schedule, grid, near, far, step, cone_angle, max_step, n_rays)
     config = _march_config(grid.resolution, grid.levels, grid.n_mips, grid.mip_cells, near, far, step,
                            cone_angle, max_step, cap, int(march.stratified), n_seg, seg_steps, *_contraction(grid))
     seed = host_seed() if march.stratified else 0
@@ -333,10 +336,8 @@ def ray_marching(
     seg_ints = torch.empty(2 * n_items + 1, dtype=torch.int32, device=dev)  # one allocation for both
     seg_counts, seg_offsets = seg_ints[:n_items], seg_ints[n_items:]
     offsets = torch.empty(n_rays + 1, dtype=torch.int32, device=dev)
-    # Segments of up to MASK_WORDS × 64 steps keep their kept steps as bit masks (a word per 64
-    # steps), so the fill need not march again.
-    words = -(-seg_steps // 64)
-    masks = torch.empty(n_items * words, dtype=torch.int64, device=dev) if words <= MASK_WORDS else None
+    words = -(-seg_steps // 64)  # of the step masks the fill writes from (MarchSchedule)
+    masks = torch.empty(n_items * words, dtype=torch.int64, device=dev) if words <= schedule.mask_words else None
     n_samples = 0
     if n_rays > 0:
         _wp.launch(K.march_rays, n_items, [0, *common, seg_counts, seg_offsets, None, *[None] * 5, masks], device)
