@@ -1,11 +1,11 @@
 """Threads per ray of the march on whole views: the same rays marched with several segment
-schedules (:class:`ngp_warp.ops.raymarch.MarchSchedule`), timed alone and inside a view's render.
+schedules (:class:`ngp_warp.ops.march_schedule.MarchSchedule`), timed alone and inside a view's render.
 
     python benchmarks/bench_march_schedule.py RUN --device cuda [--views 20]
         [--schedules 32:128 32:128:4194304 64:128 1000000000:1 32:128:4194304/0]
 
 A schedule is ``SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS][/MASK_WORDS]``
-(:class:`ngp_warp.ops.raymarch.MarchSchedule`; MASK_WORDS, the most 64-bit words of a segment's
+(:class:`ngp_warp.ops.march_schedule.MarchSchedule`; MASK_WORDS, the most 64-bit words of a segment's
 step mask, 0 to fill by marching again, defaults to 1). For each, over the first ``--views``
 test views of the run (all sub-pixel rays of a view in one launch, as the evaluation marches
 them): the segments per ray and threads per launch, ms per march (its count and fill, the device
@@ -24,12 +24,12 @@ from pathlib import Path
 import torch
 
 from ngp_warp.cli.common import positive
-from ngp_warp.ops import raymarch
+from ngp_warp.ops import march_schedule, raymarch
 from ngp_warp.outputs.renderer import subpixel_rays
 from ngp_warp.training.checkpoint import load_trainer
 
 
-def schedule(text: str) -> raymarch.MarchSchedule:
+def schedule(text: str) -> march_schedule.MarchSchedule:
     """The schedule ``SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS][/MASK_WORDS]``."""
     steps, _, words = text.partition("/")
     try:
@@ -39,7 +39,7 @@ def schedule(text: str) -> raymarch.MarchSchedule:
         parts, mask_words = [], -1
     if len(parts) not in (2, 3) or min(parts) < 1 or mask_words < 0:
         raise argparse.ArgumentTypeError(f"expected SEGMENT_STEPS:MAX_SEGMENTS[:MOST_THREADS][/MASK_WORDS], got {text!r}")
-    return raymarch.MarchSchedule(*parts, mask_words=mask_words)
+    return march_schedule.MarchSchedule(*parts, mask_words=mask_words)
 
 
 def views_rays(trainer, views: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -93,8 +93,8 @@ def main() -> None:
     march = model.march
     first, rows = None, []  # first: the first schedule's samples of the first view, on the host
     for sched in args.schedules:
-        raymarch.SCHEDULES[kind] = sched
-        n_seg, seg_steps = raymarch._segments(sched, model.grid, march.near, march.far, step, march.cone_angle,
+        march_schedule.SCHEDULES[kind] = sched
+        n_seg, seg_steps = march_schedule.ray_segments(sched, model.grid, march.near, march.far, step, march.cone_angle,
                                               max_step, rays[0][0].shape[0])
         view = raymarch.ray_marching(*rays[0], model.grid, march, validate=False)  # and the warm-up
         view = (view.ray_offsets.cpu(), view.ray_indices.cpu(), view.t_starts.cpu())

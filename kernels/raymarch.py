@@ -263,3 +263,26 @@ def march_rays(
         seg_counts[i] = n
         if i == 0:
             seg_offsets[0] = 0
+
+
+# Sample j of ray r = ray_indices[j] < N (the rays' count; padding rows name ray N):
+#   positions[j] = o_r + d_r (t_starts[j] + t_ends[j]) / 2,  directions[j] = d_r
+# One thread per sample, so that neighbouring threads write neighbouring rows: the fill pass of a
+# large launch leaves these to it (its threads write a segment's samples one after another).
+@wp.kernel
+def sample_points(
+    first: int,
+    rays_o: wp.array(dtype=wp.vec3),
+    rays_d: wp.array(dtype=wp.vec3),
+    ray_indices: wp.array(dtype=wp.int64),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    positions: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+):
+    j = first + wp.tid()
+    r = int(ray_indices[j])
+    if r < rays_o.shape[0]:
+        d = rays_d[r]
+        positions[j] = rays_o[r] + d * (0.5 * (t_starts[j] + t_ends[j]))
+        directions[j] = d

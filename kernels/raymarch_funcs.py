@@ -267,12 +267,14 @@ def write_sample(
     positions: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
 ):
-    """Packed sample j: the interval [t, t_end] of ray r and its midpoint o + d (t + t_end) / 2."""
+    """Packed sample j: the interval [t, t_end] of ray r, and its midpoint o + d (t + t_end) / 2
+    and direction unless ``positions`` is empty (the pass ``sample_points`` writes them)."""
     ray_indices[j] = wp.int64(r)
     t_starts[j] = t
     t_ends[j] = t_end
-    positions[j] = o + d * (0.5 * (t + t_end))
-    directions[j] = d
+    if positions.shape[0] > 0:
+        positions[j] = o + d * (0.5 * (t + t_end))
+        directions[j] = d
 
 
 @wp.func

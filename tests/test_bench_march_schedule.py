@@ -5,17 +5,19 @@ import argparse
 import pytest
 import torch
 
-from ngp_warp.ops.raymarch import MarchSchedule
+from ngp_warp.ops.march_schedule import MarchSchedule
 
 from benchmark_scripts import load_benchmark
 
 bench = load_benchmark("bench_march_schedule")
 
 
-def test_schedules_parse_with_and_without_a_thread_bound():
+def test_schedules_parse_with_and_without_a_thread_bound_and_mask_words():
     assert bench.schedule("32:128") == MarchSchedule(32, 128)
     assert bench.schedule("32:128:4194304") == MarchSchedule(32, 128, 4194304)
-    for bad in ("32", "32:0", "1:2:3:4"):
+    assert bench.schedule("32:128:4194304/0") == MarchSchedule(32, 128, 4194304, mask_words=0)
+    assert bench.schedule("512:8/16") == MarchSchedule(512, 8, mask_words=16)
+    for bad in ("32", "32:0", "1:2:3:4", "32:128/-1", "32:128/x"):
         with pytest.raises(argparse.ArgumentTypeError):
             bench.schedule(bad)
 

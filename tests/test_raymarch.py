@@ -4,6 +4,7 @@ import math
 import pytest
 import torch
 
+import ngp_warp.ops.march_schedule as march_schedule
 import ngp_warp.ops.raymarch as raymarch
 from ngp_warp import MarchOptions, OccupancyGrid, ray_marching
 from ngp_warp._reference import occupancy as occupancy_ref
@@ -176,10 +177,14 @@ def test_caps_keep_the_front_samples():
     assert torch.equal(total.ray_indices, full.ray_indices[:1000])
 
 
+@pytest.mark.parametrize("points_apart", [False, True])
 @pytest.mark.parametrize("cone_angle", [0.0, 1 / 64])
-def test_capacity_pads_or_cuts_without_reading_the_count(monkeypatch, cone_angle):
+def test_capacity_pads_or_cuts_without_reading_the_count(monkeypatch, cone_angle, points_apart):
     """A capacity gives exactly that many rows with no read of the count: above the count, the
-    samples then padding (ray N, empty interval, zeros); below it, what max_samples keeps."""
+    samples then padding (ray N, empty interval, zeros); below it, what max_samples keeps. So
+    too when the positions and directions take a pass of their own."""
+    if points_apart:
+        monkeypatch.setitem(march_schedule.SCHEDULES, "cpu", march_schedule.MarchSchedule(512, 8, points_apart_from=1))
     grid = random_grid(2, p=0.6)
     rays_o, rays_d = random_rays(100, 2)
     march = MarchOptions(step_size=0.02, cone_angle=cone_angle)
@@ -205,18 +210,18 @@ def test_a_launch_of_many_rays_marches_fewer_segments_each(monkeypatch):
     GPU, a training step's few rays do) and leaves the samples as they are."""
     grid = random_grid(2)
     args = (grid, 0.0, 1e10, 0.0173, 0.0, 1e10)
-    unbounded, bounded = raymarch.MarchSchedule(7, 40), raymarch.MarchSchedule(7, 40, 1000)
-    assert raymarch._segments(bounded, *args, 10) == raymarch._segments(unbounded, *args, 10)  # 10 × 40 ≤ 1000
-    n_seg, seg_steps = raymarch._segments(bounded, *args, 300)
-    all_steps = raymarch._segments(raymarch.MarchSchedule(10**9, 1), *args, 300)[1]
+    unbounded, bounded = march_schedule.MarchSchedule(7, 40), march_schedule.MarchSchedule(7, 40, 1000)
+    assert march_schedule.ray_segments(bounded, *args, 10) == march_schedule.ray_segments(unbounded, *args, 10)  # 10 × 40 ≤ 1000
+    n_seg, seg_steps = march_schedule.ray_segments(bounded, *args, 300)
+    all_steps = march_schedule.ray_segments(march_schedule.MarchSchedule(10**9, 1), *args, 300)[1]
     assert n_seg == 3 and seg_steps == -(-all_steps // 3)
-    assert raymarch._segments(bounded, *args, 5000) == (1, all_steps)  # never under one segment per ray
+    assert march_schedule.ray_segments(bounded, *args, 5000) == (1, all_steps)  # never under one segment per ray
     rays_o, rays_d = random_rays(240, 2)
-    split = raymarch.MarchSchedule(7, 40, 3 * rays_o.shape[0])
-    assert raymarch._segments(split, *args, rays_o.shape[0])[0] == 3
+    split = march_schedule.MarchSchedule(7, 40, 3 * rays_o.shape[0])
+    assert march_schedule.ray_segments(split, *args, rays_o.shape[0])[0] == 3
     results = []
-    for schedule in (raymarch.MarchSchedule(10**9, 1), split):
-        monkeypatch.setitem(raymarch.SCHEDULES, "cpu", schedule)
+    for schedule in (march_schedule.MarchSchedule(10**9, 1), split):
+        monkeypatch.setitem(march_schedule.SCHEDULES, "cpu", schedule)
         results.append(ray_marching(rays_o, rays_d, grid, MarchOptions(step_size=0.0173)))
     assert results[0].n_samples > 1000
     for name in ("ray_offsets", "ray_indices", "t_starts", "t_ends", "positions"):
@@ -230,7 +235,8 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels, cone):
     thread per ray, with fixed and with cone steps (all three of the cone's phases: fixed,
     growing, max_step), with jitter and caps, and for non-unit directions whose rays outlast the
     step estimate (the last segment takes the rest). The segments fill from the count pass's step
-    masks (one or more 64-bit words); a last segment past its mask's last bit is marched again."""
+    masks (one or more 64-bit words); a last segment past its mask's last bit is marched again.
+    The positions and directions are the same when a pass of their own writes them."""
     grid = random_grid(levels)
     rays_o, rays_d = random_rays(200, levels)
     rays_d[::3] *= 0.3
@@ -239,11 +245,12 @@ def test_segmented_march_equals_one_thread_per_ray(monkeypatch, levels, cone):
     for kw in calls:
         kw = {**kw, **cone}
         results, words = [], []
-        runs = [raymarch.MarchSchedule(10**9, 1, mask_words=0), raymarch.MarchSchedule(10**9, 1, mask_words=8),
-                raymarch.MarchSchedule(7, 40), raymarch.MarchSchedule(40, 40), raymarch.MarchSchedule(150, 40, mask_words=8)]
-        for schedule in runs:  # the first: one thread a ray, no masks
-            monkeypatch.setitem(raymarch.SCHEDULES, "cpu", schedule)
-            n_seg, seg_steps = raymarch._segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"],
+        runs = [march_schedule.MarchSchedule(10**9, 1, mask_words=0), march_schedule.MarchSchedule(10**9, 1, mask_words=8),
+                march_schedule.MarchSchedule(7, 40), march_schedule.MarchSchedule(40, 40, points_apart_from=1),
+                march_schedule.MarchSchedule(150, 40, mask_words=8, points_apart_from=1)]
+        for schedule in runs:  # the first: one thread a ray, no masks; the last two: points in a pass apart
+            monkeypatch.setitem(march_schedule.SCHEDULES, "cpu", schedule)
+            n_seg, seg_steps = march_schedule.ray_segments(schedule, grid, kw.get("near", 0.0), 1e10, kw["step_size"],
                                                   kw.get("cone_angle", 0.0), kw.get("max_step", 1e10), 200)
             words.append(-(-seg_steps // 64))
             torch.manual_seed(3)

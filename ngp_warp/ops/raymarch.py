@@ -29,13 +29,13 @@ its steps (:class:`MarchSchedule`; cone steps too, whose t_k has a closed form i
 do not depend on the split, but for a step whose midpoint lies within float rounding of the face
 of a cell or of an empty block the march skips, which may fall either side (8–17 rays of 25.6
 million in 40 of lego's views, one sample each).
-Segments of at most 64 steps record their kept steps as a bit mask in the count, from which the
-fill writes the samples without marching again.
+The count records each segment's kept steps as a bit mask, from which the fill writes the
+samples without marching again, and a large launch's positions and directions take a pass of
+their own (:mod:`ngp_warp.ops.march_schedule`).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -48,65 +48,8 @@ from ngp_warp.ops.contraction import KINDS
 from ngp_warp.kernels import raymarch as K
 from ngp_warp.kernels import raymarch_funcs as KF
 from ngp_warp.ops.occupancy import OccupancyGrid, host_seed
+from ngp_warp.ops.march_schedule import NO_CAP, SCHEDULES, MarchSchedule, ray_segments
 from ngp_warp.ops.op_registry import lookup
-
-_NO_CAP = 2**31 - 1
-
-
-@dataclass(frozen=True)
-class MarchSchedule:
-    """Threads per ray for fixed steps: a ray's steps are split into segments of at least
-    ``segment_steps`` steps, at most ``max_segments`` of them per ray, and with ``most_threads``
-    (None: no such bound) no more segments than keep the threads of one launch within it (at
-    least one segment per ray). A segment of at most ``mask_words`` × 64 steps keeps its kept
-    steps as a bit mask (a word per 64 steps), from which the fill writes the samples instead of
-    marching again."""
-
-    segment_steps: int
-    max_segments: int
-    most_threads: int | None = None
-    mask_words: int = 1
-
-
-# The GPU needs many short segments to fill its threads when a launch marches few rays (a
-# training step's); a view's hundreds of thousands of rays fill it with a few segments each, and
-# every segment costs a ray setup. On the CPU the rays alone already keep every core busy. The
-# CPU's fill is bound by its march, so its segments (up to 1024 steps) keep masks; the GPU's
-# fill of a view's longer segments is bound by its writes, and a mask of several words there
-# gains nothing (benchmarks/RESULTS.md, "A view's march filled from step masks").
-SCHEDULES = {"cpu": MarchSchedule(512, 8, mask_words=16), "cuda": MarchSchedule(32, 128, 1 << 22)}
-
-
-def steps_over(t_a: float, t_b: float, step: float, cone_angle: float, max_step: float) -> float:
-    """The steps from t_a to t_b ≥ t_a (not rounded) of t_{k+1} = t_k + clip(t_k·cone_angle,
-    step, max_step): fixed steps up to step/cone_angle, steps growing by 1 + cone_angle up to
-    max_step/cone_angle, then steps of max_step."""
-    if cone_angle == 0:
-        return (t_b - t_a) / step
-    fixed_end, growing_end = step / cone_angle, max_step / cone_angle
-    n = max(min(t_b, fixed_end) - t_a, 0.0) / step
-    lo, hi = max(t_a, fixed_end), min(t_b, growing_end)
-    if hi > lo:
-        n += math.log(hi / lo) / math.log1p(cone_angle)
-    return n + max(t_b - max(t_a, growing_end), 0.0) / max_step
-
-
-def _segments(schedule: MarchSchedule, grid: OccupancyGrid, near: float, far: float, step: float,
-              cone_angle: float, max_step: float, n_rays: int) -> tuple[int, int]:
-    """(segments per ray, steps per segment) for a launch of ``n_rays`` rays. A ray inside the
-    coarsest cascade box spans at most min(far − near, box diagonal) when |d| = 1, and takes the
-    most steps when that span starts at near (steps only grow with t): :func:`steps_over` + 1
-    (the last segment takes any remainder). Contracted grids are marched by one thread per ray."""
-    if grid.contraction is not None:
-        return 1, _NO_CAP
-    lo, hi = grid.aabb_host[:3], grid.aabb_host[3:]
-    diagonal = math.dist(lo, hi) * 2 ** (grid.levels - 1)
-    steps = steps_over(near, near + min(far - near, diagonal), step, cone_angle, max_step) + 1
-    n_seg = int(min(max(steps / schedule.segment_steps, 1), schedule.max_segments))
-    if schedule.most_threads is not None:
-        n_seg = max(1, min(n_seg, schedule.most_threads // max(n_rays, 1)))
-    return n_seg, math.ceil(steps / n_seg)
-
 
 @dataclass
 class RaySamples:
@@ -249,7 +192,7 @@ def _march_steps(march: MarchOptions, grid: OccupancyGrid) -> tuple[float, float
                          f"got {march.cone_angle}, {max_step}, {step}")
     if not march.near < march.far:
         raise ValueError(f"need near < far, got near={march.near}, far={march.far}")
-    cap = _NO_CAP if march.max_samples_per_ray is None else int(march.max_samples_per_ray)
+    cap = NO_CAP if march.max_samples_per_ray is None else int(march.max_samples_per_ray)
     if cap < 0 or (march.max_samples is not None and march.max_samples < 0):
         raise ValueError("max_samples_per_ray and max_samples must be non-negative")
     return step, max_step, cap
@@ -327,7 +270,7 @@ def ray_marching(
     n_rays = rays_o.shape[0]
     device = _wp.device_of(rays_o)
     schedule = SCHEDULES["cpu" if device == "cpu" else "cuda"]
-    n_seg, seg_steps = _segments(schedule, grid, near, far, step, cone_angle, max_step, n_rays)
+    n_seg, seg_steps = ray_segments(schedule, grid, near, far, step, cone_angle, max_step, n_rays)
     config = _march_config(grid.resolution, grid.levels, grid.n_mips, grid.mip_cells, near, far, step,
                            cone_angle, max_step, cap, int(march.stratified), n_seg, seg_steps, *_contraction(grid))
     seed = host_seed() if march.stratified else 0
@@ -341,27 +284,28 @@ def ray_marching(
     n_samples = 0
     if n_rays > 0:
         _wp.launch(K.march_rays, n_items, [0, *common, seg_counts, seg_offsets, None, *[None] * 5, masks], device)
-        if cap != _NO_CAP:  # keep each ray's first `cap` samples: cap the running count within the ray
+        if cap != NO_CAP:  # keep each ray's first `cap` samples: cap the running count within the ray
             in_ray = torch.cumsum(seg_counts.view(n_rays, n_seg), 1, dtype=torch.int32).clamp_(max=cap)
             seg_counts = torch.diff(in_ray, dim=1, prepend=in_ray.new_zeros(n_rays, 1)).reshape(-1)
         torch.cumsum(seg_counts, 0, dtype=torch.int32, out=seg_offsets[1:])
-        limit = min(x for x in (march.max_samples, capacity, _NO_CAP) if x is not None)
-        if limit != _NO_CAP:
+        limit = min(x for x in (march.max_samples, capacity, NO_CAP) if x is not None)
+        if limit != NO_CAP:
             seg_offsets.clamp_(max=int(limit))
         n_samples = _sample_total(seg_offsets[-1:], capacity, before_sync,
                                   _ray_flags(rays_o, rays_d, unit_directions) if validate else None)
     elif before_sync is not None:
         before_sync()
     return _fill(n_samples if capacity is None else capacity, n_rays, n_items, capacity is not None, common,
-                 seg_offsets, offsets, masks, device)
+                 seg_offsets, offsets, masks, schedule, device)
 
 
 def _fill(n_samples: int, n_rays: int, n_items: int, padded: bool, common: list, seg_offsets: torch.Tensor,
-          offsets: torch.Tensor, masks: torch.Tensor | None, device: str) -> RaySamples:
+          offsets: torch.Tensor, masks: torch.Tensor | None, schedule: MarchSchedule, device: str) -> RaySamples:
     """The march's fill pass: ``n_samples`` output rows (``padded``: a capacity's, initialised as
     padding) written by the ``n_items`` (ray, segment) threads from the count pass's
     ``seg_offsets`` [n_items + 1] int32 and step ``masks`` [n_items × words] int64 (or None); the rays'
-    ``offsets`` [n_rays + 1] int32 are written too (zeros when nothing was marched)."""
+    ``offsets`` [n_rays + 1] int32 are written too (zeros when nothing was marched). The
+    ``schedule`` says when positions and directions take a pass of their own."""
     dev = offsets.device
     ray_indices = _empty_or_full(n_samples, torch.int64, n_rays, padded, dev)
     floats = _empty_or_full(8 * n_samples, torch.float32, 0, padded, dev)  # contiguous parts
@@ -369,11 +313,13 @@ def _fill(n_samples: int, n_rays: int, n_items: int, padded: bool, common: list,
     positions = floats[2 * n_samples : 5 * n_samples].view(n_samples, 3)
     directions = floats[5 * n_samples :].view(n_samples, 3)
     if n_samples > 0 and n_rays > 0:
-        _wp.launch(
-            K.march_rays, n_items,
-            [1, *common, None, seg_offsets, offsets, ray_indices, t_starts, t_ends, positions, directions, masks],
-            device,
-        )
+        apart = schedule.points_apart_from is not None and n_samples >= schedule.points_apart_from
+        points = [None, None] if apart else [positions, directions]
+        _wp.launch(K.march_rays, n_items,
+                   [1, *common, None, seg_offsets, offsets, ray_indices, t_starts, t_ends, *points, masks], device)
+        if apart:
+            _wp.launch(K.sample_points, n_samples,
+                       [*common[:2], ray_indices, t_starts, t_ends, positions, directions], device)
     else:
         offsets.zero_()
     return RaySamples(ray_indices, t_starts, t_ends, positions, directions, offsets)
