@@ -6,7 +6,8 @@ one runs to the ray's end); with a scene contraction one thread marches a ray. T
 built from the helpers of :mod:`ngp_warp.kernels.raymarch_funcs` (the ray's interval, the
 steps, the cell lookup) and the walks below: through an occupied cell (:func:`take_cell`) and
 over empty space (:func:`march_segment`), and through contracted space
-(:func:`march_contracted`).
+(:func:`march_contracted`). After a large launch's fill, :func:`sample_points` writes the
+samples' positions and directions, one thread per sample.
 Sampling carries no gradient, so there is no backward kernel here.
 """
 
