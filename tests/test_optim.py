@@ -120,8 +120,8 @@ def test_kept_average_stays_exact_across_log_decay_rebases():
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 def test_a_second_flush_of_the_kept_average_changes_nothing(device):
-    # the average far from the weights, as a table entry that changed sign: p + (a − p) rounds
-    # away from a where the compiler keeps it (CUDA's fused multiply-add; the CPU build folds it)
+    # the average far from the weights. On CUDA the fused multiply-add of the updates leaves
+    # a − p inexact, so p + (a − p) can round away from a; the CPU build's a − p is exact
     p = torch.nn.Parameter(torch.randn(20000, device=device))
     average = 1e-3 * torch.randn(20000, device=device)
     opt = LazyAdam([p], lr=1e-2)
