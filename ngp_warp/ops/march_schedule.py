@@ -58,7 +58,7 @@ def steps_over(t_a: float, t_b: float, step: float, cone_angle: float, max_step:
 
 
 def ray_segments(schedule: MarchSchedule, grid: OccupancyGrid, near: float, far: float, step: float,
-              cone_angle: float, max_step: float, n_rays: int) -> tuple[int, int]:
+                 cone_angle: float, max_step: float, n_rays: int) -> tuple[int, int]:
     """(segments per ray, steps per segment) for a launch of ``n_rays`` rays. A ray inside the
     coarsest cascade box spans at most min(far − near, box diagonal) when |d| = 1, and takes the
     most steps when that span starts at near (steps only grow with t): :func:`steps_over` + 1
