@@ -12,8 +12,9 @@ import os
 import sys
 from typing import NoReturn
 
-from ngp_warp import _interrupt_while_loading
+from ngp_warp import _interrupt_while_loading, cuda_start
 from ngp_warp.cli import ranks
+from ngp_warp.cli.train import prefetch_scene_images
 from ngp_warp.training import rank_env
 from ngp_warp.cli.common import CHECKPOINT, MAX_DOWNSCALE, UserError, folder_name, positive, seed_number
 from ngp_warp.wall_clock import command_started
@@ -117,6 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     asked = ranks.ranks_asked(argv)
     if 1 < asked <= (os.cpu_count() or 1) and not rank_env.started_as_rank():  # before anything heavy loads
         return ranks.launch(asked, ranks.without_gpus(argv))
+    if asked <= 1 or rank_env.started_as_rank():  # torch's import goes on beside these; a launcher uses no GPU
+        cuda_start.start_cuda(argv)
+        if argv[:1] == ["train"]:
+            prefetch_scene_images(argv[1:])
     with _interrupt_while_loading():
         parser = _parser()
     args = _parse(parser, argv)

@@ -183,6 +183,7 @@ def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
     """Train (or resume), checkpoint, evaluate and render into ``out`` (a folder of one run:
     :class:`ngp_warp.training.run_folder.RunFolder`)."""
     from ngp_warp.data.loading import load_scene
+    from ngp_warp.data.prefetch import drop_prefetched
     from ngp_warp.training.run_folder import RunFolder
     from ngp_warp.training.train_step import capture_imports_alongside, uses_graphs
 
@@ -191,8 +192,11 @@ def train_and_report(scene_path: Path, out: Path, args, config=None) -> dict:
     resume = getattr(args, "resume", False)
     folder = RunFolder(out, resume, args.overwrite, ("--resume" if hasattr(args, "resume") else None, "--overwrite"))
     graphs = config is not None and not resume and uses_graphs(config, device.split(":")[0])
-    with capture_imports_alongside(graphs):  # the graphs' capture imports while the images decode
-        scene = None if resume else load_scene(scene_path, downscale=args.downscale or 1)
+    try:
+        with capture_imports_alongside(graphs):  # the graphs' capture imports while the images decode
+            scene = None if resume else load_scene(scene_path, downscale=args.downscale or 1)
+    finally:
+        drop_prefetched()  # what `train` started decoding early (ngp_warp.data.prefetch) and the loading left
     created = not out.exists()
     out = writable_dir(out)
     try:

@@ -9,6 +9,25 @@ from ngp_warp.cli.common import (UserError, check_run_apart, no_probe, print_met
                                  train_and_report, train_config, with_settings, writable_dir)
 
 
+def prefetch_scene_images(train_args: list[str]) -> None:
+    """``ngp-warp train SCENE ...``: start decoding the scene's images before anything imports
+    torch (:mod:`ngp_warp.data.prefetch`), for the usual form only (the scene first, no
+    ``--resume``). ``--downscale N`` is read as given, since it picks a COLMAP scene's
+    ``images_N/``; the loading reads anything the prefetch did not decode."""
+    if not train_args or train_args[0].startswith("-") or "--resume" in train_args:
+        return
+    downscale = 1
+    for flag, value in zip(train_args, train_args[1:] + [""]):
+        given = value if flag == "--downscale" else flag.partition("=")[2] if flag.startswith("--downscale=") else None
+        if given is not None:
+            if not given.isdigit() or int(given) < 1:
+                return  # the parser refuses it
+            downscale = int(given)
+    from ngp_warp.data.prefetch import start_prefetch
+
+    start_prefetch(train_args[0], downscale)
+
+
 def cmd_train(args) -> None:
     scene = Path(args.scene)
     if args.resume and args.set:

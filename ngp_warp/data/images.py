@@ -96,10 +96,13 @@ def with_transparency(image: np.ndarray, colours: tuple[int, ...]) -> np.ndarray
     return image
 
 
-def load_images(frames: list[Frame], downscale: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """Read, check and downscale every frame's image -> ([N, h, w, C] uint8, original (W, H)s)."""
+def load_images(frames: list[Frame], downscale: int, read=None) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Read (with ``read``, a path's [H, W, 3 or 4] uint8 as :func:`read_image`'s, which is the
+    default), check and downscale every frame's image -> ([N, h, w, C] uint8, original (W, H)s)."""
+    read = read or read_image
+
     def load(frame: Frame):
-        a = with_transparency(read_image(frame.image), frame.transparent)
+        a = with_transparency(read(frame.image), frame.transparent)
         if a.shape[0] < downscale or a.shape[1] < downscale:
             raise DataError(f"{frame.image}: image is {a.shape[1]}x{a.shape[0]}, smaller than downscale {downscale}")
         return (a.shape[1], a.shape[0]), downscale_image(a, downscale)

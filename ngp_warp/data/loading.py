@@ -26,11 +26,12 @@ import torch
 
 from ngp_warp.atomic import atomic_write_text
 from ngp_warp.data.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, generate_rays
-from ngp_warp.data.colmap import colmap_to_transforms, read_colmap_model
 from ngp_warp.data.data_error import DataError, short
 from ngp_warp.data.images import downscale_image, load_images, load_masks
+from ngp_warp.data.prefetch import read_prefetched
+from ngp_warp.data.scene_sources import scene_sources
 from ngp_warp.data.transforms_json import (NGP_SCENE_KEYS, Frame, check_pose_set, contraction_key, declared_size, frame_camera, log,
-                                      named_split, read_frames, read_json, world_box, world_from_scene)
+                                      named_split, read_frames, world_box, world_from_scene)
 
 __all__ = ["DataError", "Split", "Scene", "load_scene", "generate_rays", "image_rays", "downscale_image",
            "normalisation_record", "write_normalisation"]
@@ -223,39 +224,6 @@ def _split(frames: list[Frame], images: np.ndarray, sizes: list[tuple[int, int]]
     )
 
 
-def _colmap_sparse(folder: Path) -> Path | None:
-    for sparse in (folder / "sparse" / "0", folder / "sparse"):
-        if any((sparse / f"cameras{ext}").is_file() for ext in (".bin", ".txt")):
-            return sparse
-    return None
-
-
-def scene_sources(path: Path, downscale: int) -> tuple[list[tuple[dict, Path, Path]], str, int]:
-    """([(meta, source for messages, image base)] for train (and test), kind, downscale left to apply)."""
-    if path.is_file():
-        return [(read_json(path), path, path.parent)], "json", downscale
-    if not path.is_dir():
-        raise DataError(f"{path}: no such file or folder")
-    if (path / "transforms_train.json").is_file():
-        test = path / "transforms_test.json"
-        if test.exists() and not test.is_file():
-            raise DataError(f"{test}: is not a file (a test split must be a transforms file)")
-        jsons = [path / "transforms_train.json"] + [test] * test.exists()
-        return [(read_json(p), p, path) for p in jsons], "json", downscale
-    if (path / "transforms.json").is_file():
-        return [(read_json(path / "transforms.json"), path / "transforms.json", path)], "json", downscale
-    sparse = _colmap_sparse(path)
-    if sparse is None:
-        raise DataError(f"{path}: no transforms_train.json, transforms.json or COLMAP sparse/0/ in this folder")
-    image_dir = f"images_{downscale}"
-    if downscale == 1 or not (path / image_dir).is_dir():
-        image_dir = "images"
-    if not (path / image_dir).is_dir():
-        raise DataError(f"{path}: no {image_dir}/ folder beside the COLMAP model in {sparse.relative_to(path)}/")
-    meta = colmap_to_transforms(read_colmap_model(sparse), image_dir)
-    return [(meta, sparse, path)], "colmap", 1 if image_dir != "images" else downscale
-
-
 def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> Scene:
     """Load a NeRF-synthetic folder, an instant-ngp ``transforms.json`` (folder or file) or a
     COLMAP folder (``sparse/0/`` + ``images/``).
@@ -297,7 +265,7 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
 
     for frames in (train, train + test):  # the training views apart, then beside the test views
         check_pose_set(frames, sources[0][1])
-    images, sizes = load_images(train + test, downscale)
+    images, sizes = load_images(train + test, downscale, read=read_prefetched)
     n = len(train)
     first = sources[0][1]
     is_ngp = kind == "colmap" or first.name != "transforms_train.json" or any(

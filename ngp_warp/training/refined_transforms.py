@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from ngp_warp.atomic import atomic_write_text
-from ngp_warp.data.loading import scene_sources
+from ngp_warp.data.scene_sources import scene_sources
 from ngp_warp.data.transforms_json import image_path
 from ngp_warp.training.run_folder import REFINED_TRANSFORMS
 

@@ -1,0 +1,174 @@
+"""A scene's images decoded by a child process while the command imports torch.
+
+``ngp-warp train SCENE`` calls :func:`start_prefetch` before anything imports torch, on a machine
+of :data:`MIN_CORES` usable cores or more: a child Python (``python -m ngp_warp.data.prefetch``,
+numpy and Pillow only) decodes the image files that :func:`~ngp_warp.data.loading.load_scene`
+will read on threads of its own, writes their pixels one after another into an unlinked
+temporary file (in ``/dev/shm`` where there is one), and prints an index of them. Threads of the
+command itself would hold up torch's import on the GIL by about what they save; a process does
+not. :func:`read_prefetched` gives the loading each image from that file where its file is
+unchanged since (size and modification time) and reads it itself otherwise, so a problem with a
+file (unreadable, corrupt, changed) is the loading's to raise, as without a prefetch.
+:func:`drop_prefetched` forgets what the loading did not take. Imports neither torch nor Warp.
+
+On a machine with fewer cores the child would take the cores that torch's import needs (on 2
+cores the decoding delayed everything after it by as much as it saved), so nothing starts.
+"""
+
+from __future__ import annotations
+
+import json
+import mmap
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+MIN_CORES = 8  # usable cores for a prefetch: the child's decoders beside torch's import
+MAX_BYTES = 2 << 30  # decoded pixels the child writes at most; the loading reads the rest itself
+DECODERS = 16  # the child's decoding threads at most
+# numpy, Pillow and the scene's readers load inside the functions: the command starts the child
+# before importing anything it can leave for later
+
+_child: tuple[subprocess.Popen, object] | None = None  # the running child and its file
+_decoded: dict | None = None  # path → (file key, pixels)
+_lock = threading.Lock()  # the loading reads on several threads
+
+
+def usable_cores() -> int:
+    """Cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def _file_key(path: Path) -> tuple[int, int]:
+    stat = os.stat(path)
+    return stat.st_size, stat.st_mtime_ns
+
+
+def _spool_dir() -> str | None:
+    shm = "/dev/shm"
+    return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
+
+
+def start_prefetch(scene: str | Path, downscale: int = 1, min_cores: int | None = None) -> bool:
+    """Start the child that decodes the images of ``scene`` at ``downscale`` (see the module), on
+    a machine of at least ``min_cores`` (default :data:`MIN_CORES`) usable cores; True when it
+    started. A second call drops the first one's child."""
+    drop_prefetched()
+    if usable_cores() < (MIN_CORES if min_cores is None else min_cores):
+        return False
+    global _child
+    try:
+        spool = tempfile.TemporaryFile(dir=_spool_dir())
+        child = subprocess.Popen([sys.executable, "-m", "ngp_warp.data.prefetch", str(scene), str(downscale),
+                                  str(spool.fileno())], pass_fds=(spool.fileno(),), stdin=subprocess.DEVNULL,
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    except OSError:
+        return False
+    _child = (child, spool)
+    return True
+
+
+def _map(fd: int) -> mmap.mmap:
+    """The file ``fd`` mapped read-only, its pages mapped at once where the system can
+    (``MAP_POPULATE``: a page fault for each 4 KiB of lego's 192 MB of pixels cost 0.3 s)."""
+    if hasattr(mmap, "MAP_POPULATE"):
+        return mmap.mmap(fd, 0, flags=mmap.MAP_SHARED | mmap.MAP_POPULATE, prot=mmap.PROT_READ)
+    return mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
+
+
+def _collect() -> dict:
+    """Wait for the child and map what it wrote: {path: (file key, [H, W, C] uint8 read-only
+    ndarray)}; empty where it failed."""
+    import numpy as np
+
+    global _child
+    child, spool = _child
+    _child = None
+    with spool:
+        index_text = child.communicate()[0]
+        try:
+            index = json.loads(index_text) if child.returncode == 0 else []
+            pixels = _map(spool.fileno()) if index else None
+        except (ValueError, OSError):
+            return {}
+    decoded = {}
+    for path, size, mtime_ns, shape, offset in index:
+        count = int(np.prod(shape))
+        decoded[path] = ((size, mtime_ns), np.frombuffer(pixels, np.uint8, count, offset).reshape(shape))
+    return decoded
+
+
+def read_prefetched(path: Path):
+    """:func:`~ngp_warp.data.images.read_image` of ``path`` ([H, W, 3 or 4] uint8; read-only
+    when it comes from the prefetch): the child's pixels when it decoded this file and the
+    file has kept its size and modification time since, else a read of the file."""
+    global _decoded
+    from ngp_warp.data.images import read_image
+
+    with _lock:
+        if _child is not None:
+            _decoded = _collect()
+        key, pixels = (_decoded or {}).pop(str(path), (None, None))
+    try:
+        unchanged = pixels is not None and _file_key(path) == key
+    except OSError:
+        unchanged = False
+    return pixels if unchanged else read_image(path)
+
+
+def drop_prefetched() -> None:
+    """Forget the prefetch: end a child still running and let go of what the loading did not take."""
+    global _child, _decoded
+    with _lock:
+        if _child is not None:
+            child, spool = _child
+            child.kill()
+            child.communicate()
+            spool.close()
+        _child, _decoded = None, None
+
+
+def _decode_scene(scene: Path, downscale: int, spool_fd: int) -> list:
+    """The child's work: decode the scene's images on threads, write their pixels to
+    ``spool_fd`` in turn (until :data:`MAX_BYTES`), and return the index [path, size,
+    mtime_ns, shape, offset] of those written. Files it cannot list or decode are left out."""
+    import numpy as np
+
+    from ngp_warp.data.data_error import DataError
+    from ngp_warp.data.images import read_image
+    from ngp_warp.data.scene_sources import scene_image_files
+
+    try:
+        files = list(dict.fromkeys(scene_image_files(scene, downscale)))
+    except (DataError, OSError, ValueError):
+        return []
+
+    def decode(path: Path):
+        try:
+            return _file_key(path), read_image(path)
+        except (DataError, OSError):
+            return None, None
+
+    index, offset = [], 0
+    pool = ThreadPoolExecutor(min(DECODERS, usable_cores()))
+    try:
+        with os.fdopen(spool_fd, "wb") as spool:
+            for path, (key, pixels) in zip(files, pool.map(decode, files)):
+                if pixels is None:
+                    continue
+                if offset + pixels.nbytes > MAX_BYTES:
+                    break
+                spool.write(np.ascontiguousarray(pixels).data)
+                index.append([str(path), *key, list(pixels.shape), offset])
+                offset += pixels.nbytes
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    return index
+
+
+if __name__ == "__main__":  # the child: SCENE DOWNSCALE FD
+    print(json.dumps(_decode_scene(Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]))))
