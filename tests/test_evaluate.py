@@ -10,7 +10,10 @@ import torch
 from ngp_warp.data.loading import load_scene
 from ngp_warp.data.scene import write_demo_scene
 from ngp_warp.ops.field import FieldConfig
-from ngp_warp.outputs.evaluate import _one_behind, depth_to_uint8, evaluate
+from ngp_warp.outputs.evaluate import (NEAREST_CODE_KEYS, _groups, _GroupReadout, _one_behind, depth_to_uint8, evaluate,
+                                       psnr_whole_and_halves, score_group_size, to_uint8)
+from ngp_warp.outputs.metrics import psnr_tensor, ssim_tensor
+from ngp_warp.training.appearance_fit import right_half
 from ngp_warp.training.config import TrainConfig
 from ngp_warp.training.trainer import Trainer
 
@@ -44,6 +47,44 @@ def test_each_view_is_read_once_the_next_has_been_made():
 
     assert [(i, list(made)) for i in _one_behind(views())] == [(0, [0, 1]), (1, [0, 1, 2]), (2, [0, 1, 2])]
     assert list(_one_behind(iter(()))) == [] and list(_one_behind([None])) == [None]
+
+
+def _random_views(n: int, height: int, width: int, fitted: bool) -> list:
+    gen = torch.Generator().manual_seed(n + height)
+    views = []
+    for k in range(n):
+        out = {"rgb": torch.rand(height, width, 3, generator=gen), "depth": torch.rand(height, width, generator=gen),
+               "opacity": torch.rand(height, width, generator=gen)}
+        if fitted:
+            out["other_rgb"] = torch.rand(2, height, width, 3, generator=gen)
+        views.append((f"v{k}.png", out, torch.rand(height, width, 3, generator=gen)))
+    return views
+
+
+@pytest.mark.parametrize("fitted", [False, True])
+@pytest.mark.parametrize("size", [(12, 26), (9, 10)])  # the second below SSIM's window: no SSIM
+def test_a_group_of_views_scores_and_reads_as_each_view_alone(fitted, size):
+    views = _random_views(3, *size, fitted)
+    looked = []
+    read = _GroupReadout(views, fitted, lambda rgb, gt: looked.append(rgb.shape) or (None, "no lpips")).read()
+    assert [name for name, *_ in read] == ["v0.png", "v1.png", "v2.png"] and len(looked) == 3
+    for (name, scores, rgb, depth), (_, out, gt) in zip(read, views):
+        pred, ref = (right_half(out["rgb"]), right_half(gt)) if fitted else (out["rgb"], gt)
+        want = {"psnr": psnr_tensor(pred, ref).item(),
+                "ssim": ssim_tensor(pred, ref).item() if min(size) >= 11 else None, "lpips": None}
+        if fitted:
+            nearest, mean = out["other_rgb"]
+            want["psnr_mean_code"] = psnr_tensor(mean, gt).item()
+            want.update(zip(NEAREST_CODE_KEYS, (t.item() for t in psnr_whole_and_halves(nearest, gt))))
+        assert list(scores) == list(want)  # metrics.json's order
+        assert scores == pytest.approx(want, rel=1e-12)
+        assert np.array_equal(rgb, to_uint8(out["rgb"]).numpy())
+        assert np.array_equal(depth, depth_to_uint8(out["depth"], out["opacity"]).numpy())
+
+
+def test_views_are_scored_in_groups_of_a_few_million_pixels():
+    assert score_group_size(400, 400) == 8 and score_group_size(1920, 1080) == 1 and score_group_size(800, 800) == 3
+    assert [len(g) for g in _groups(range(19), 8)] == [8, 8, 3] and list(_groups([], 8)) == []
 
 
 def _host_waits(work) -> int:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ngp_warp.outputs.metrics import psnr, ssim
+from ngp_warp.outputs.metrics import psnr, psnr_batch, ssim, ssim_batch
 
 
 def _images(h=32, w=40, c=3, seed=0):
@@ -121,3 +121,23 @@ def test_metrics_validate_inputs():
             ssim(*bad)
     with pytest.raises(ValueError, match="at least 11x11"):
         ssim(x[:10], y[:10])
+
+
+@pytest.mark.parametrize("size", [(11, 11), (17, 23)])
+def test_a_batch_of_pairs_scores_as_each_pair_alone(size):
+    gen = torch.Generator().manual_seed(5)
+    pred = torch.rand(3, *size, 3, generator=gen)
+    gt = (pred + 0.1 * torch.randn(3, *size, 3, generator=gen)).clamp(0, 1)
+    psnrs, ssims = psnr_batch(pred, gt), ssim_batch(pred, gt)
+    assert psnrs.shape == ssims.shape == (3,) and psnrs.dtype == ssims.dtype == torch.float64
+    for k in range(3):
+        assert psnrs[k].item() == pytest.approx(psnr(pred[k], gt[k]), rel=1e-12)
+        assert ssims[k].item() == pytest.approx(ssim(pred[k], gt[k]), rel=1e-12)
+    assert len(set(psnrs.tolist())) == 3 and len(set(ssims.tolist())) == 3  # each pair its own
+
+
+def test_a_batch_of_another_shape_is_refused():
+    with pytest.raises(ValueError, match=r"\[N, H, W, C\]"):
+        psnr_batch(torch.rand(8, 8, 3), torch.rand(8, 8, 3))
+    with pytest.raises(ValueError, match="differ in shape"):
+        ssim_batch(torch.rand(2, 12, 12, 3), torch.rand(3, 12, 12, 3))

@@ -4,15 +4,16 @@ appearance codes on the right half of each view, its code fitted on the left), r
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import torch
+from PIL import Image
 
 from ngp_warp._wp import cpu_threads
 from ngp_warp.progress import progress
@@ -22,7 +23,7 @@ from ngp_warp.training.appearance_fit import (FIT_ITERATIONS, FIT_PULL, fit_appe
 from ngp_warp.atomic import atomic_dir, atomic_write_text
 from ngp_warp.outputs.lpips import lpips_scorer, lpips_summary
 from ngp_warp.data.loading import Split
-from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr_tensor, ssim_tensor
+from ngp_warp.outputs.metrics import SSIM_WINDOW, psnr_batch, psnr_tensor, ssim_batch
 from ngp_warp.training.run_folder import TRAINING_CURVE
 from ngp_warp.training.trainer import Trainer
 
@@ -43,13 +44,13 @@ def to_uint8(img: torch.Tensor) -> torch.Tensor:
 
 
 def depth_to_uint8(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
-    """Expected depth normalised by opacity, near = bright, empty = black; [H, W] uint8 on the
-    depth's device."""
+    """Expected depth normalised by opacity, near = bright, empty = black: [..., H, W] uint8 on
+    the depth's device, each image ([H, W]) over the range of its own opaque pixels."""
     d = depth / opacity.clamp_min(1e-6)
     mask = opacity > 0.5
     # the range of the opaque pixels without reading it on the host (no pixel opaque: all black)
-    lo = torch.where(mask, d, torch.inf).amin()
-    hi = torch.where(mask, d, -torch.inf).amax()
+    lo = torch.where(mask, d, torch.inf).amin(dim=(-2, -1), keepdim=True)
+    hi = torch.where(mask, d, -torch.inf).amax(dim=(-2, -1), keepdim=True)
     d = 1.0 - (d - lo) / (hi - lo).clamp_min(1e-6)
     return to_uint8(torch.where(mask, d, torch.zeros_like(d)))
 
@@ -59,6 +60,12 @@ def _cameras_on(split: Split, device: torch.device) -> Split:
     images where they are (a test split's go to the device one at a time)."""
     return dataclasses.replace(split, c2w=split.c2w.to(device), intrinsics=split.intrinsics.to(device),
                                distortion=split.distortion.to(device))
+
+
+def write_png(path: Path, pixels: np.ndarray) -> None:
+    """``pixels`` ([H, W, 3] or [H, W] uint8) as a PNG file, by Pillow directly: the file imageio
+    writes, without its per-call plugin lookup, which holds the GIL that the renders' launches need."""
+    Image.fromarray(pixels).save(path, format="PNG")
 
 
 def write_workers() -> int:
@@ -144,16 +151,9 @@ def iter_test_renders(trainer: Trainer, every: int = 1, split=None, spp: int = 1
         yield split.names[i], out, gt
 
 
-def _scores(rgb: torch.Tensor, gt: torch.Tensor, lpips_score) -> tuple[dict, str]:
-    """PSNR and SSIM (None below an 11-pixel window) as 0-d tensors on the images' device, and
-    LPIPS as a float (None and the reason when it cannot be computed: ``lpips_score``, an
-    :func:`~ngp_warp.outputs.lpips.lpips_scorer`), of rgb against gt ([H, W, 3] float32 in [0, 1])."""
-    s = ssim_tensor(rgb, gt) if min(gt.shape[:2]) >= SSIM_WINDOW else None
-    lpips, lpips_note = lpips_score(rgb, gt)
-    return {"psnr": psnr_tensor(rgb, gt), "ssim": s, "lpips": lpips}, lpips_note
-
-
 NEAREST_CODE_KEYS = ("psnr_nearest_code", "psnr_nearest_code_left", "psnr_nearest_code_right")
+SCORE_GROUP_PIXELS = 1 << 21  # pixels of the test views scored together: 8 lego views (400 × 400)
+MAX_SCORE_GROUP = 8
 
 
 def psnr_whole_and_halves(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -165,37 +165,72 @@ def psnr_whole_and_halves(rgb: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Te
             psnr_tensor(right_half(rgb), right_half(gt)))
 
 
-def _nearest_code_scores(rgb: torch.Tensor, gt: torch.Tensor) -> dict:
-    """:func:`psnr_whole_and_halves` of a view rendered with the nearest training camera's code."""
-    return dict(zip(NEAREST_CODE_KEYS, psnr_whole_and_halves(rgb, gt)))
+def _score_pairs(out: dict, gt: torch.Tensor, fitted: bool) -> dict:
+    """What a view is scored on, in metrics.json's order: {key: (metric, render, ground truth)}
+    with metric "psnr" or "ssim" (and "lpips" for LPIPS), images [H', W', 3] float32. A fitted
+    view (appearance codes) scores its fitted code's right half, its mean code's whole image and
+    its nearest code's whole image and halves (:func:`psnr_whole_and_halves`)."""
+    rgb, ref = (right_half(out["rgb"]), right_half(gt)) if fitted else (out["rgb"], gt)
+    pairs = {"psnr": ("psnr", rgb, ref), "ssim": ("ssim", rgb, ref), "lpips": ("lpips", rgb, ref)}
+    if fitted:
+        nearest, mean = out["other_rgb"]
+        half = gt.shape[1] // 2
+        pairs["psnr_mean_code"] = ("psnr", mean, gt)
+        pairs.update(zip(NEAREST_CODE_KEYS, (("psnr", nearest, gt), ("psnr", nearest[:, :half], gt[:, :half]),
+                                             ("psnr", right_half(nearest), right_half(gt)))))
+    return pairs
 
 
-class _ViewReadout:
-    """One scored view, kept on the device until :meth:`read` brings its scores (0-d device
-    tensors, None or host floats) and its uint8 render and depth map to the host. Read one view
-    later (:func:`_one_behind`), once the next view's render is queued, the host's reads wait
-    for the device once a view, not at each score and image, and its file and bookkeeping work
-    runs while the device renders."""
+def score_group_size(width: int, height: int) -> int:
+    """Test views of ``width`` × ``height`` scored together: :data:`SCORE_GROUP_PIXELS` of them,
+    1 to :data:`MAX_SCORE_GROUP` views."""
+    return max(1, min(MAX_SCORE_GROUP, SCORE_GROUP_PIXELS // max(1, width * height)))
 
-    def __init__(self, name: str, out: dict, gt: torch.Tensor, fitted: bool, lpips_score):
-        self.name = name
-        if fitted:
-            scores, self.lpips_note = _scores(right_half(out["rgb"]), right_half(gt), lpips_score)
-            nearest, mean = out["other_rgb"]
-            scores["psnr_mean_code"] = psnr_tensor(mean, gt)
-            scores.update(_nearest_code_scores(nearest, gt))
-        else:
-            scores, self.lpips_note = _scores(out["rgb"], gt, lpips_score)
-        self._scores = scores
-        self._images = (to_uint8(out["rgb"]), depth_to_uint8(out["depth"], out["opacity"]))
 
-    def read(self) -> tuple[dict, np.ndarray, np.ndarray]:
-        """The scores as host floats (in their order; None where not computed), the render [H, W,
-        3] and the depth map [H, W] uint8."""
-        on_device = [k for k, v in self._scores.items() if isinstance(v, torch.Tensor)]
-        values = dict(zip(on_device, torch.stack([self._scores[k] for k in on_device]).tolist()))
-        scores = {k: values.get(k, v) for k, v in self._scores.items()}
-        return scores, *(t.cpu().numpy() for t in self._images)
+class _GroupReadout:
+    """A group of rendered views ``(name, render dict, ground truth)``, scored together on the
+    device (:func:`~ngp_warp.outputs.metrics.psnr_batch`, :func:`~ngp_warp.outputs.metrics.ssim_batch`:
+    a set of score launches a group instead of a view) and kept there until :meth:`read` brings
+    every score and the uint8 renders and depth maps to the host in one wait. Read one group
+    later (:func:`_one_behind`), once the next group's renders are queued, the host's file and
+    bookkeeping work runs while the device renders. LPIPS, where available, is scored a view at
+    a time (``lpips_score``, :func:`~ngp_warp.outputs.lpips.lpips_scorer`)."""
+
+    def __init__(self, views: list, fitted: bool, lpips_score):
+        self.names = [name for name, _, _ in views]
+        pairs = [_score_pairs(out, gt, fitted) for _, out, gt in views]
+        lpips = [lpips_score(*view["lpips"][1:]) for view in pairs]
+        self.lpips_note = lpips[-1][1]
+        self._lpips = [value for value, _ in lpips]
+        self._keys = list(pairs[0])
+        small = min(pairs[0]["ssim"][2].shape[:2]) < SSIM_WINDOW
+        on_device = [key for key in self._keys if key != "lpips" and not (key == "ssim" and small)]
+        batched = {"psnr": psnr_batch, "ssim": ssim_batch}
+        self._on_device = on_device
+        self._scores = torch.stack([batched[pairs[0][key][0]](torch.stack([view[key][1] for view in pairs]),
+                                                              torch.stack([view[key][2] for view in pairs]))
+                                    for key in on_device])  # [K, G]
+        self._images = (to_uint8(torch.stack([out["rgb"] for _, out, _ in views])),
+                        depth_to_uint8(torch.stack([out["depth"] for _, out, _ in views]),
+                                       torch.stack([out["opacity"] for _, out, _ in views])))
+
+    def read(self) -> list[tuple[str, dict, np.ndarray, np.ndarray]]:
+        """Each view's name, scores as host floats (in metrics.json's order; None where not
+        computed), render [H, W, 3] and depth map [H, W] uint8."""
+        values = self._scores.T.tolist()  # [G][K]
+        rgbs, depths = (images.cpu().numpy() for images in self._images)
+        read = []
+        for k, name in enumerate(self.names):
+            known = dict(zip(self._on_device, values[k]), lpips=self._lpips[k])
+            read.append((name, {key: known.get(key) for key in self._keys}, rgbs[k], depths[k]))
+        return read
+
+
+def _groups(items: Iterable, size: int) -> Iterator[list]:
+    """``items`` in lists of ``size`` (the last may be shorter)."""
+    items = iter(items)
+    while group := list(itertools.islice(items, size)):
+        yield group
 
 
 def _one_behind(items: Iterable) -> Iterator:
@@ -227,14 +262,15 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
     with trainer.weights.averaged_in_field(), atomic_dir(out_dir / "renders") as renders, \
             atomic_dir(out_dir / "depth") as depths, BackgroundWrites() as writes:  # the average swapped in once
         lpips_score = lpips_scorer()
-        for view in _one_behind(_ViewReadout(name, out, gt, fitted, lpips_score) for name, out, gt in views):
-            stem, lpips_note = Path(view.name).stem, view.lpips_note
-            scores, rgb, depth = view.read()
-            per_image.append({"image": view.name, **scores})
-            writes.submit(iio.imwrite, renders / f"{stem}.png", rgb)
-            writes.submit(iio.imwrite, depths / f"{stem}.png", depth)
-            bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
-            bar.update()
+        size = score_group_size(trainer.scene.test.width, trainer.scene.test.height)
+        for group in _one_behind(_GroupReadout(views, fitted, lpips_score) for views in _groups(views, size)):
+            lpips_note = group.lpips_note
+            for name, scores, rgb, depth in group.read():
+                per_image.append({"image": name, **scores})
+                writes.submit(write_png, renders / f"{Path(name).stem}.png", rgb)
+                writes.submit(write_png, depths / f"{Path(name).stem}.png", depth)
+                bar.set_postfix(psnr=f"{scores['psnr']:.2f}", refresh=False)
+                bar.update()
         bar.close()
     posed = " and pose" if trainer.cameras is not None else ""
     appearance = {"appearance": f"code{posed} fitted on the left half ({FIT_ITERATIONS} iterations from the nearest "

@@ -29,6 +29,15 @@ def _check(pred: torch.Tensor, gt: torch.Tensor, min_size: int = 1) -> None:
         raise ValueError(f"images must be at least {min_size}x{min_size} pixels, got {list(pred.shape[:2])}")
 
 
+def _check_batch(pred: torch.Tensor, gt: torch.Tensor, min_size: int = 1) -> None:
+    for name, t in (("pred", pred), ("gt", gt)):
+        if not isinstance(t, torch.Tensor) or t.dim() != 4 or t.shape[0] == 0:
+            raise ValueError(f"{name} must be a torch.Tensor of shape [N, H, W, C], N >= 1")
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred and gt differ in shape: {list(pred.shape)} vs {list(gt.shape)}")
+    _check(pred[0], gt[0], min_size)
+
+
 def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     """Peak signal-to-noise ratio in dB for a data range of 1 (inf for identical images).
 
@@ -45,7 +54,14 @@ def psnr_tensor(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """:func:`psnr` as a 0-d float64 tensor on the images' device, computed without a host read
     (the evaluation reads a view's scores later, in one copy)."""
     _check(pred, gt)
-    return -10.0 * torch.log10(((pred.double() - gt.double()) ** 2).mean())
+    return psnr_batch(pred[None], gt[None])[0]
+
+
+def psnr_batch(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """:func:`psnr` of N image pairs at once: pred, gt [N, H, W, C] float → [N] float64 on their
+    device, without a host read (the evaluation scores a group of views in one set of launches)."""
+    _check_batch(pred, gt)
+    return -10.0 * torch.log10(((pred.double() - gt.double()) ** 2).flatten(1).mean(1))
 
 
 @functools.lru_cache(maxsize=None)  # one per device, made once
@@ -97,9 +113,17 @@ def ssim(pred: torch.Tensor, gt: torch.Tensor) -> float:
 def ssim_tensor(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """:func:`ssim` as a 0-d float64 tensor on the images' device, computed without a host read."""
     _check(pred, gt, SSIM_WINDOW)
-    x = pred.double().permute(2, 0, 1)  # [C, H, W]
-    y = gt.double().permute(2, 0, 1)
-    # the five blurred images at once, one pass per axis of the separable window
+    return ssim_batch(pred[None], gt[None])[0]
+
+
+def ssim_batch(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """:func:`ssim` of N image pairs at once: pred, gt [N, H, W, C] float, H, W >= 11 → [N]
+    float64 on their device, without a host read."""
+    _check_batch(pred, gt, SSIM_WINDOW)
+    n, channels = pred.shape[0], pred.shape[-1]
+    x = pred.double().permute(0, 3, 1, 2).flatten(0, 1)  # [N C, H, W]
+    y = gt.double().permute(0, 3, 1, 2).flatten(0, 1)
+    # the five blurred images of every pair at once, one pass per axis of the separable window
     blurred = _blur(torch.cat([x, y, x * x, y * y, x * y]), shifted=x.is_cuda)
     mu_x, mu_y, xx, yy, xy = blurred.chunk(5)
     var_x = xx - mu_x**2
@@ -107,4 +131,4 @@ def ssim_tensor(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     cov = xy - mu_x * mu_y
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     s = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-    return s.mean()
+    return s.view(n, channels, *s.shape[1:]).flatten(1).mean(1)
