@@ -70,6 +70,16 @@ def test_a_file_changed_after_the_prefetch_is_read_again(tmp_path, parent_reads)
     assert np.array_equal(loaded.test.images[1].numpy(), new)
 
 
+def test_past_its_bytes_the_child_stops_and_the_loading_reads_the_rest(tmp_path, parent_reads):
+    scene = _scene(tmp_path)  # 7 images of 10 × 7 RGBA: 280 bytes each
+    expected = _pixels(load_scene(scene))
+    parent_reads.clear()
+    assert prefetch.start_prefetch(scene, min_cores=1, max_bytes=600)
+    assert np.array_equal(_pixels(load_scene(scene)), expected)
+    assert len(parent_reads) == 5
+    assert prefetch._spool_dir(1 << 62) is None  # no /dev/shm that large: the temporary folder
+
+
 def test_a_corrupt_file_raises_as_without_the_prefetch(tmp_path, parent_reads):
     scene = _scene(tmp_path)
     (scene / "train" / "r_2.png").write_bytes(b"not a png")

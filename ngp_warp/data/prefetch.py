@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import mmap
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -48,24 +49,32 @@ def _file_key(path: Path) -> tuple[int, int]:
     return stat.st_size, stat.st_mtime_ns
 
 
-def _spool_dir() -> str | None:
+def _spool_dir(max_bytes: int) -> str | None:
+    """/dev/shm where it can take ``max_bytes`` (a container's is often 64 MB), else None: the
+    system's temporary folder."""
     shm = "/dev/shm"
-    return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
+    try:
+        roomy = os.access(shm, os.W_OK) and shutil.disk_usage(shm).free >= max_bytes
+    except OSError:
+        roomy = False
+    return shm if roomy else None
 
 
-def start_prefetch(scene: str | Path, downscale: int = 1, min_cores: int | None = None) -> bool:
+def start_prefetch(scene: str | Path, downscale: int = 1, min_cores: int | None = None,
+                   max_bytes: int = MAX_BYTES) -> bool:
     """Start the child that decodes the images of ``scene`` at ``downscale`` (see the module), on
-    a machine of at least ``min_cores`` (default :data:`MIN_CORES`) usable cores; True when it
-    started. A second call drops the first one's child."""
+    a POSIX machine of at least ``min_cores`` (default :data:`MIN_CORES`) usable cores, writing
+    at most ``max_bytes`` of pixels; True when it started. A second call drops the first one's
+    child."""
     drop_prefetched()
-    if usable_cores() < (MIN_CORES if min_cores is None else min_cores):
+    if os.name != "posix" or usable_cores() < (MIN_CORES if min_cores is None else min_cores):
         return False
     global _child
     try:
-        spool = tempfile.TemporaryFile(dir=_spool_dir())
+        spool = tempfile.TemporaryFile(dir=_spool_dir(max_bytes))
         child = subprocess.Popen([sys.executable, "-m", "ngp_warp.data.prefetch", str(scene), str(downscale),
-                                  str(spool.fileno())], pass_fds=(spool.fileno(),), stdin=subprocess.DEVNULL,
-                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+                                  str(spool.fileno()), str(max_bytes)], pass_fds=(spool.fileno(),),
+                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     except OSError:
         return False
     _child = (child, spool)
@@ -132,10 +141,16 @@ def drop_prefetched() -> None:
         _child, _decoded = None, None
 
 
-def _decode_scene(scene: Path, downscale: int, spool_fd: int) -> list:
+def _write_all(fd: int, data: memoryview) -> None:
+    while data:
+        data = data[os.write(fd, data):]
+
+
+def _decode_scene(scene: Path, downscale: int, spool_fd: int, max_bytes: int) -> list:
     """The child's work: decode the scene's images on threads, write their pixels to
-    ``spool_fd`` in turn (until :data:`MAX_BYTES`), and return the index [path, size,
-    mtime_ns, shape, offset] of those written. Files it cannot list or decode are left out."""
+    ``spool_fd`` in turn (until ``max_bytes``, or the file system is full), and return the index
+    [path, size, mtime_ns, shape, offset] of those written. Files it cannot list or decode are
+    left out."""
     import numpy as np
 
     from ngp_warp.data.data_error import DataError
@@ -156,19 +171,22 @@ def _decode_scene(scene: Path, downscale: int, spool_fd: int) -> list:
     index, offset = [], 0
     pool = ThreadPoolExecutor(min(DECODERS, usable_cores()))
     try:
-        with os.fdopen(spool_fd, "wb") as spool:
-            for path, (key, pixels) in zip(files, pool.map(decode, files)):
-                if pixels is None:
-                    continue
-                if offset + pixels.nbytes > MAX_BYTES:
-                    break
-                spool.write(np.ascontiguousarray(pixels).data)
-                index.append([str(path), *key, list(pixels.shape), offset])
-                offset += pixels.nbytes
+        for path, (key, pixels) in zip(files, pool.map(decode, files)):
+            if pixels is None:
+                continue
+            if offset + pixels.nbytes > max_bytes:
+                break
+            try:
+                _write_all(spool_fd, memoryview(np.ascontiguousarray(pixels)).cast("B"))
+            except OSError:  # the file system is full: what is written so far stands
+                break
+            index.append([str(path), *key, list(pixels.shape), offset])
+            offset += pixels.nbytes
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+        os.close(spool_fd)
     return index
 
 
-if __name__ == "__main__":  # the child: SCENE DOWNSCALE FD
-    print(json.dumps(_decode_scene(Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]))))
+if __name__ == "__main__":  # the child: SCENE DOWNSCALE FD MAX_BYTES
+    print(json.dumps(_decode_scene(Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]))))
