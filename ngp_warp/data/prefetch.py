@@ -4,7 +4,7 @@
 of :data:`MIN_CORES` usable cores or more: a child Python (``python -m ngp_warp.data.prefetch``,
 numpy and Pillow only) decodes the image files that :func:`~ngp_warp.data.loading.load_scene`
 will read on threads of its own, writes their pixels one after another into an unlinked
-temporary file (in ``/dev/shm`` where there is one), and prints an index of them. Threads of the
+temporary file (in ``/dev/shm`` where it has room), and prints an index of them. Threads of the
 command itself would hold up torch's import on the GIL by about what they save; a process does
 not. :func:`read_prefetched` gives the loading each image from that file where its file is
 unchanged since (size and modification time) and reads it itself otherwise, so a problem with a
@@ -12,7 +12,8 @@ file (unreadable, corrupt, changed) is the loading's to raise, as without a pref
 :func:`drop_prefetched` forgets what the loading did not take. Imports neither torch nor Warp.
 
 On a machine with fewer cores the child would take the cores that torch's import needs (on 2
-cores the decoding delayed everything after it by as much as it saved), so nothing starts.
+cores, decoding beside torch's import delayed everything after it by as much as it saved), so
+nothing starts.
 """
 
 from __future__ import annotations
