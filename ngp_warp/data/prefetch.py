@@ -169,14 +169,14 @@ def _decode_scene(scene: Path, downscale: int, spool_fd: int, max_bytes: int) ->
         except (DataError, OSError):
             return None, None
 
-    index, offset = [], 0
+    index, offset, parent = [], 0, os.getppid()
     pool = ThreadPoolExecutor(min(DECODERS, usable_cores()))
     try:
         for path, (key, pixels) in zip(files, pool.map(decode, files)):
+            if os.getppid() != parent or offset + (0 if pixels is None else pixels.nbytes) > max_bytes:
+                break  # the command has ended (say, on a mistyped option), or the bytes are spent
             if pixels is None:
                 continue
-            if offset + pixels.nbytes > max_bytes:
-                break
             try:
                 _write_all(spool_fd, memoryview(np.ascontiguousarray(pixels)).cast("B"))
             except OSError:  # the file system is full: what is written so far stands
