@@ -203,13 +203,14 @@ class _GroupReadout:
         self.lpips_note = lpips[-1][1]
         self._lpips = [value for value, _ in lpips]
         self._keys = list(pairs[0])
-        small = min(pairs[0]["ssim"][2].shape[:2]) < SSIM_WINDOW
-        on_device = [key for key in self._keys if key != "lpips" and not (key == "ssim" and small)]
+        small = min(pairs[0]["ssim"][2].shape[:2]) < SSIM_WINDOW  # SSIM needs its whole window
+        self._on_device = [key for key in self._keys if key != "lpips" and not (key == "ssim" and small)]
         batched = {"psnr": psnr_batch, "ssim": ssim_batch}
-        self._on_device = on_device
-        self._scores = torch.stack([batched[pairs[0][key][0]](torch.stack([view[key][1] for view in pairs]),
-                                                              torch.stack([view[key][2] for view in pairs]))
-                                    for key in on_device])  # [K, G]
+        scores = []
+        for key in self._on_device:
+            renders, truths = (torch.stack([view[key][i] for view in pairs]) for i in (1, 2))
+            scores.append(batched[pairs[0][key][0]](renders, truths))
+        self._scores = torch.stack(scores)  # [K, G] float64
         self._images = (to_uint8(torch.stack([out["rgb"] for _, out, _ in views])),
                         depth_to_uint8(torch.stack([out["depth"] for _, out, _ in views]),
                                        torch.stack([out["opacity"] for _, out, _ in views])))
@@ -263,7 +264,8 @@ def evaluate(trainer: Trainer, out_dir: Path, show_progress: bool = True) -> dic
             atomic_dir(out_dir / "depth") as depths, BackgroundWrites() as writes:  # the average swapped in once
         lpips_score = lpips_scorer()
         size = score_group_size(trainer.scene.test.width, trainer.scene.test.height)
-        for group in _one_behind(_GroupReadout(views, fitted, lpips_score) for views in _groups(views, size)):
+        groups = (_GroupReadout(group_views, fitted, lpips_score) for group_views in _groups(views, size))
+        for group in _one_behind(groups):
             lpips_note = group.lpips_note
             for name, scores, rgb, depth in group.read():
                 per_image.append({"image": name, **scores})
