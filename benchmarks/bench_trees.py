@@ -40,7 +40,11 @@ def _git(*args: str) -> bytes:
 
 def unpack(tree: str, out: Path) -> tuple[str, Path]:
     """The commit ``tree`` names (its short hash) and the folder holding its ``ngp_warp`` package
-    (``kernels/`` moved to ``ngp_warp/kernels/``, as the install maps it)."""
+    (``kernels/`` moved to ``ngp_warp/kernels/``, as the install maps it); or, where ``tree`` is
+    a folder that holds such a package already (a tree unpacked elsewhere, for a machine without
+    the repository's history), its name and that folder."""
+    if (Path(tree) / "ngp_warp" / "__init__.py").is_file():
+        return Path(tree).resolve().name, Path(tree).resolve()
     commit = _git("rev-parse", "--verify", f"{tree}^{{commit}}").decode().strip()
     folder = out / f"tree-{commit[:10]}"
     if not (folder / "ngp_warp" / "__init__.py").is_file():
@@ -91,7 +95,8 @@ def _cell(value) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--trees", required=True, help="comma-separated commits (HEAD, a hash, a branch)")
+    parser.add_argument("--trees", required=True,
+                        help="comma-separated commits (HEAD, a hash, a branch) or folders holding an ngp_warp package")
     parser.add_argument("--rounds", type=int, default=4, help="runs of each tree")
     parser.add_argument("--out", type=Path, default=Path("bench_trees"))
     parser.add_argument("command", nargs=argparse.REMAINDER, help="-- then the ngp-warp command, without --out")

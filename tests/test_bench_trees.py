@@ -38,6 +38,14 @@ def test_two_commits_run_by_turns_each_from_its_own_tree(tmp_path, capsys):
     assert f"| {parent} | 1 |" in table and f"| {head} | 2 |" in table
 
 
+def test_a_folder_holding_a_tree_is_taken_as_it_is(tmp_path):
+    tree = tmp_path / "base"
+    (tree / "ngp_warp").mkdir(parents=True)
+    (tree / "ngp_warp" / "__init__.py").write_text("")
+    assert bench_trees.unpack(str(tree), tmp_path / "out") == ("base", tree.resolve())
+    bench_trees.check_import(tree, tmp_path)  # a run there imports this package
+
+
 def test_a_tree_shadowed_by_another_package_is_refused(tmp_path):
     empty = tmp_path / "tree"
     empty.mkdir()  # no ngp_warp here: the run would import the installed one
