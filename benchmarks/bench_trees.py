@@ -5,9 +5,10 @@ run's wall clock, steps and PSNR is read against the host's drift between runs.
         train ../shared/data/lego_half --seconds 15 --device cuda --no-video --quiet
 
 Each tree is a commit's ``ngp_warp/`` and ``kernels/`` (``git archive``), unpacked under
-``--out`` and put first on ``PYTHONPATH``; every run is ``python -P -m ngp_warp.cli COMMAND --out
-RUN --overwrite`` started in ``--out``, so that no tree comes from the installed package and the
-trees load alike (each tree's import path is checked before its first run). The order turns
+``--out``, or a folder holding such a tree, and put first on ``PYTHONPATH``; every run is
+``python -P -m ngp_warp.cli COMMAND --out RUN --overwrite``, so that no tree comes from the
+installed package and the trees load alike (where each tree's package and kernels import from
+is checked before the first run). The order turns
 over every round (A B, B A, A B, ...), so each tree runs first as often as the others: a run can
 leave work behind for the next (its files' writeback) and a host drifts. Prints a row per run
 (the command's own seconds, metrics.json's wall clock by phase, steps, PSNR) as it ends, then
@@ -21,6 +22,7 @@ import argparse
 import io
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -38,22 +40,33 @@ def _git(*args: str) -> bytes:
     return done.stdout
 
 
+def _is_tree(folder: Path) -> bool:
+    return all((folder / "ngp_warp" / part / "__init__.py").is_file() for part in ("", "kernels"))
+
+
 def unpack(tree: str, out: Path) -> tuple[str, Path]:
     """The commit ``tree`` names (its short hash) and the folder holding its ``ngp_warp`` package
     (``kernels/`` moved to ``ngp_warp/kernels/``, as the install maps it); or, where ``tree`` is
-    a folder that holds such a package already (a tree unpacked elsewhere, for a machine without
-    the repository's history), its name and that folder."""
-    if (Path(tree) / "ngp_warp" / "__init__.py").is_file():
+    a folder that holds such a package, kernels included, already (a tree unpacked elsewhere, for
+    a machine without the repository's history), its name and that folder."""
+    if _is_tree(Path(tree)):
         return Path(tree).resolve().name, Path(tree).resolve()
     commit = _git("rev-parse", "--verify", f"{tree}^{{commit}}").decode().strip()
     folder = out / f"tree-{commit[:10]}"
-    if not (folder / "ngp_warp" / "__init__.py").is_file():
+    if not _is_tree(folder):
+        partial = out / f".tree-{commit[:10]}.partial"  # renamed once whole: an interrupted unpack is redone
+        shutil.rmtree(partial, ignore_errors=True)
         with tarfile.open(fileobj=io.BytesIO(_git("archive", "--format=tar", commit, "ngp_warp", "kernels"))) as tar:
             members = tar.getmembers()
             for member in members:
                 if member.name == "kernels" or member.name.startswith("kernels/"):
                     member.name = f"ngp_warp/{member.name}"
-            tar.extractall(folder, members=members, filter="data")
+            try:
+                tar.extractall(partial, members=members, filter="data")
+            except TypeError:  # a Python before 3.11.4, without extraction filters
+                tar.extractall(partial, members=members)
+        shutil.rmtree(folder, ignore_errors=True)
+        partial.rename(folder)
     return commit[:10], folder
 
 
@@ -62,20 +75,26 @@ def _environment(folder: Path) -> dict:
     return {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
 
 
-def check_import(folder: Path, cwd: Path) -> None:
-    """SystemExit unless a run started as :func:`run_once` starts it imports ngp_warp from ``folder``."""
-    done = subprocess.run([sys.executable, "-P", "-c", "import ngp_warp; print(ngp_warp.__file__)"], cwd=cwd,
-                          env=_environment(folder), capture_output=True, text=True)
-    imported = Path(done.stdout.strip() or "?").resolve()
-    if done.returncode != 0 or folder.resolve() not in imported.parents:
-        raise SystemExit(f"{folder}: a run would import ngp_warp from {imported} instead")
+WHERE = "import ngp_warp, ngp_warp.kernels; print(ngp_warp.__file__); print(ngp_warp.kernels.__file__)"
 
 
-def run_once(folder: Path, command: list[str], run: Path, cwd: Path) -> dict:
-    """One run of ``command`` with the tree in ``folder``: its seconds, steps, PSNR and phases."""
+def check_import(folder: Path) -> None:
+    """SystemExit unless a run started as :func:`run_once` starts it imports ngp_warp, and its
+    kernels, from ``folder`` (an installed package's import hook could supply either)."""
+    done = subprocess.run([sys.executable, "-P", "-c", WHERE], env=_environment(folder), capture_output=True,
+                          text=True)
+    imported = [Path(line).resolve() for line in done.stdout.split()] if done.returncode == 0 else []
+    if len(imported) != 2 or any(folder.resolve() not in path.parents for path in imported):
+        shown = ", ".join(map(str, imported)) or done.stderr.strip()[-300:]
+        raise SystemExit(f"{folder}: a run would import ngp_warp from {shown} instead")
+
+
+def run_once(folder: Path, command: list[str], run: Path) -> dict:
+    """One run of ``command`` with the tree in ``folder`` (started in the current folder, which
+    ``-P`` keeps off the import path): its seconds, steps, PSNR and phases."""
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-P", "-m", "ngp_warp.cli", *command, "--out", str(run), "--overwrite"],
-                          cwd=cwd, env=_environment(folder), capture_output=True, text=True)
+                          env=_environment(folder), capture_output=True, text=True)
     seconds = time.perf_counter() - start
     if done.returncode != 0:
         raise SystemExit(f"{folder.name}: {' '.join(command)} failed ({done.returncode}):\n{done.stderr[-2000:]}")
@@ -106,14 +125,16 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("no command given (after --)")
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    trees = [unpack(tree, out) for tree in args.trees.split(",")]
-    for _, folder in dict.fromkeys(trees):
-        check_import(folder, out)
+    trees = list(dict.fromkeys(unpack(tree, out) for tree in args.trees.split(",")))
+    names = [name for name, _ in trees]
+    trees = [(name if names.count(name) == 1 else f"{name}-{k + 1}", folder) for k, (name, folder) in enumerate(trees)]
+    for _, folder in trees:
+        check_import(folder)
     columns = ("tree", "run", "command", *PHASES, "steps", "psnr")
     print("| " + " | ".join(columns) + " |\n|" + "---|" * len(columns), flush=True)
     rows: dict[str, list[dict]] = {}
     for k, (name, folder) in enumerate(order(trees, args.rounds)):
-        row = run_once(folder, command, out / f"run-{name}", out)
+        row = run_once(folder, command, out / f"run-{name}")
         rows.setdefault(name, []).append(row)
         print("| " + " | ".join([name, str(k + 1), *(_cell(row[c]) for c in columns[2:])]) + " |", flush=True)
     print("\nmeans:\n| tree | runs | " + " | ".join(columns[2:]) + " |\n|" + "---|" * (len(columns)), flush=True)

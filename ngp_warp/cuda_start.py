@@ -17,9 +17,10 @@ THREAD_NAME = "cuda start"
 
 def device_ordinal(argv: list[str], local_rank: str | None = None) -> int | None:
     """The CUDA device that the command line ``argv`` (the words after ``ngp-warp``) will use:
-    N for ``--device cuda:N``; for ``cuda``, ``auto`` or no ``--device``, the rank's
-    ``local_rank`` (``LOCAL_RANK``) or 0; None for a command that uses no GPU, ``--device cpu``
-    or a value the parser will refuse."""
+    a rank's ``local_rank`` (``LOCAL_RANK``: ranks use ``cuda:LOCAL_RANK``,
+    :func:`ngp_warp.training.distributed.join`) for any CUDA device, else N for ``--device
+    cuda:N`` and 0 for ``cuda``, ``auto`` or no ``--device``; None for a command that uses no
+    GPU, ``--device cpu`` or a value the parser will refuse."""
     if not argv or argv[0] not in GPU_COMMANDS:
         return None
     device = "auto"
@@ -28,10 +29,14 @@ def device_ordinal(argv: list[str], local_rank: str | None = None) -> int | None
             device = following
         elif word.startswith("--device="):
             device = word.partition("=")[2]
-    if device in ("auto", "cuda"):
-        return int(local_rank) if local_rank is not None and local_rank.isdigit() else 0
+    def number(text: str | None) -> int | None:
+        return int(text) if text is not None and text.isascii() and text.isdecimal() else None
+
     kind, _, index = device.partition(":")
-    return int(index) if kind == "cuda" and index.isdigit() else None
+    if device == "auto" or kind == "cuda" and (index == "" or number(index) is not None):
+        rank = number(local_rank)  # a rank uses cuda:LOCAL_RANK whatever --device names
+        return rank if rank is not None else number(index) or 0
+    return None
 
 
 def _driver() -> ctypes.CDLL | None:
@@ -60,6 +65,8 @@ def start_cuda(argv: list[str]) -> threading.Thread | None:
     ordinal = device_ordinal(argv, os.environ.get("LOCAL_RANK"))
     if ordinal is None or os.environ.get("CUDA_VISIBLE_DEVICES", None) in ("", "-1"):
         return None
+    # what torch sets before its own CUDA start, read by cuInit: kernels loaded on first use
+    os.environ.setdefault("CUDA_MODULE_LOADING", "LAZY")
     thread = threading.Thread(target=_retain_primary_context, args=(ordinal,), name=THREAD_NAME, daemon=True)
     thread.start()
     return thread

@@ -40,14 +40,19 @@ def test_two_commits_run_by_turns_each_from_its_own_tree(tmp_path, capsys):
 
 def test_a_folder_holding_a_tree_is_taken_as_it_is(tmp_path):
     tree = tmp_path / "base"
-    (tree / "ngp_warp").mkdir(parents=True)
-    (tree / "ngp_warp" / "__init__.py").write_text("")
+    (tree / "ngp_warp" / "kernels").mkdir(parents=True)
+    for init in ("ngp_warp/__init__.py", "ngp_warp/kernels/__init__.py"):
+        (tree / init).write_text("")
     assert bench_trees.unpack(str(tree), tmp_path / "out") == ("base", tree.resolve())
-    bench_trees.check_import(tree, tmp_path)  # a run there imports this package
+    bench_trees.check_import(tree)  # a run there imports this package and its kernels
 
 
-def test_a_tree_shadowed_by_another_package_is_refused(tmp_path):
+def test_a_tree_that_would_import_another_package_is_refused(tmp_path):
     empty = tmp_path / "tree"
     empty.mkdir()  # no ngp_warp here: the run would import the installed one
     with pytest.raises(SystemExit, match="would import ngp_warp from"):
-        bench_trees.check_import(empty, tmp_path)
+        bench_trees.check_import(empty)
+    (empty / "ngp_warp").mkdir()
+    (empty / "ngp_warp" / "__init__.py").write_text("")  # kernels left to the installed package's hook
+    with pytest.raises(SystemExit, match="would import ngp_warp from"):
+        bench_trees.check_import(empty)

@@ -80,6 +80,34 @@ def test_past_its_bytes_the_child_stops_and_the_loading_reads_the_rest(tmp_path,
     assert prefetch._spool_dir(1 << 62) is None  # no /dev/shm that large: the temporary folder
 
 
+def test_a_file_replaced_with_its_size_and_time_kept_is_read_again(tmp_path, parent_reads):
+    scene = _scene(tmp_path)
+    path = scene / "train" / "r_1.png"
+    assert prefetch.start_prefetch(scene, min_cores=1)
+    prefetch.collect_prefetched()
+    before = os.stat(path)
+    new = random_image(np.random.default_rng(3), 7, 10, 4)
+    iio.imwrite(path, new)
+    if os.stat(path).st_size != before.st_size:  # PNGs of random pixels: the same size, almost always
+        pytest.skip("the new PNG's size differs")
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))  # as `cp -p` or `rsync -t` leave it
+    assert np.array_equal(load_scene(scene).train.images[1].numpy(), new)
+    assert parent_reads == ["r_1.png"]
+
+
+def test_an_interrupt_while_waiting_for_the_child_ends_it(tmp_path, monkeypatch):
+    assert prefetch.start_prefetch(_scene(tmp_path), min_cores=1)
+    child = prefetch._child[0]
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(child, "communicate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        prefetch.collect_prefetched()
+    assert child.poll() is not None and prefetch._child is None
+
+
 def test_a_corrupt_file_raises_as_without_the_prefetch(tmp_path, parent_reads):
     scene = _scene(tmp_path)
     (scene / "train" / "r_2.png").write_bytes(b"not a png")
@@ -133,6 +161,9 @@ def test_the_command_line_starts_them_before_torch_and_warp_load():
     (["SCENE", "--downscale", "4"], [("SCENE", 4)]),
     (["SCENE", "--downscale=2", "--device", "cuda"], [("SCENE", 2)]),
     (["SCENE", "--downscale", "0"], []),  # the parser refuses it
+    (["SCENE", "--downscale", "²"], []),  # a digit to str.isdigit, not to int()
+    (["SCENE", "--down", "2"], []),  # an abbreviation the parser takes: the loading reads the images
+    (["SCENE", "--dev", "cuda"], [("SCENE", 1)]),
     (["SCENE", "--resume"], []),
     (["--steps", "3", "SCENE"], []),
     ([], []),
@@ -151,6 +182,9 @@ def test_which_train_commands_start_a_prefetch(monkeypatch, args, expected):
     (["fit-many", "m", "--device", "auto"], "2", 2),
     (["render", "r", "--device", "cpu"], None, None),
     (["eval", "r", "--device", "cuda:x"], None, None),
+    (["eval", "r", "--device", "cuda:²"], None, None),
+    (["train", "s", "--device", "cuda:3"], "1", 1),  # a rank uses cuda:LOCAL_RANK
+    (["train", "s", "--device", "cpu"], "1", None),
     (["process", "photos"], None, None),
     (["bench"], None, None),
     ([], None, None),

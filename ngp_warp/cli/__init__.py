@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     if 1 < asked <= (os.cpu_count() or 1) and not rank_env.started_as_rank():  # before anything heavy loads
         return ranks.launch(asked, ranks.without_gpus(argv))
     if asked <= 1 or rank_env.started_as_rank():  # torch's import goes on beside these; a launcher uses no GPU
-        if argv[:1] == ["train"]:
+        if argv[:1] == ["train"] and not rank_env.started_as_rank():  # ranks would share the cores and /dev/shm
             prefetch_scene_images(argv[1:])  # the child first, while this process has one thread
         cuda_start.start_cuda(argv)
     with _interrupt_while_loading():

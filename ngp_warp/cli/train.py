@@ -18,9 +18,12 @@ def prefetch_scene_images(train_args: list[str]) -> None:
         return
     downscale = 1
     for flag, value in zip(train_args, train_args[1:] + [""]):
-        given = value if flag == "--downscale" else flag.partition("=")[2] if flag.startswith("--downscale=") else None
+        name, equals, inline = flag.partition("=")
+        if name != "--downscale" and len(name) > 3 and "--downscale".startswith(name):
+            return  # an abbreviation the parser takes: left to the loading
+        given = (inline if equals else value) if name == "--downscale" else None
         if given is not None:
-            if not given.isdigit() or int(given) < 1:
+            if not (given.isascii() and given.isdecimal()) or int(given) < 1:
                 return  # the parser refuses it
             downscale = int(given)
     from ngp_warp.data.prefetch import start_prefetch

@@ -28,7 +28,7 @@ from ngp_warp.atomic import atomic_write_text
 from ngp_warp.data.cameras import LENS_FISHEYE, LENS_OPENCV, LENS_PINHOLE, generate_rays
 from ngp_warp.data.data_error import DataError, short
 from ngp_warp.data.images import downscale_image, load_images, load_masks
-from ngp_warp.data.prefetch import read_prefetched
+from ngp_warp.data.prefetch import collect_prefetched, read_prefetched
 from ngp_warp.data.scene_sources import scene_sources
 from ngp_warp.data.transforms_json import (NGP_SCENE_KEYS, Frame, check_pose_set, contraction_key, declared_size, frame_camera, log,
                                       named_split, read_frames, world_box, world_from_scene)
@@ -265,6 +265,7 @@ def load_scene(path: str | Path, downscale: int = 1, holdout_every: int = 8) -> 
 
     for frames in (train, train + test):  # the training views apart, then beside the test views
         check_pose_set(frames, sources[0][1])
+    collect_prefetched()  # here, not on a loader thread: a Ctrl-C while the child finishes ends it
     images, sizes = load_images(train + test, downscale, read=read_prefetched)
     n = len(train)
     first = sources[0][1]

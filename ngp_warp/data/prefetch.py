@@ -6,9 +6,10 @@ numpy and Pillow only) decodes the image files that :func:`~ngp_warp.data.loadin
 will read on threads of its own, writes their pixels one after another into an unlinked
 temporary file (in ``/dev/shm`` where it has room), and prints an index of them. Threads of the
 command itself would hold up torch's import on the GIL by about what they save; a process does
-not. :func:`read_prefetched` gives the loading each image from that file where its file is
-unchanged since (size and modification time) and reads it itself otherwise, so a problem with a
-file (unreadable, corrupt, changed) is the loading's to raise, as without a prefetch.
+not. :func:`collect_prefetched` waits for the child, and :func:`read_prefetched` gives the
+loading each image from that file where its file is unchanged since (:func:`_file_key`) and reads
+it itself otherwise, so a problem with a file (unreadable, corrupt, changed) is the loading's to
+raise, as without a prefetch.
 :func:`drop_prefetched` forgets what the loading did not take. Imports neither torch nor Warp.
 
 On a machine with fewer cores the child would take the cores that torch's import needs (on 2
@@ -45,9 +46,11 @@ def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def _file_key(path: Path) -> tuple[int, int]:
+def _file_key(path: Path) -> list[int]:
+    """What tells a file unchanged: its size, modification and change times, inode and device
+    (a copy that keeps the size and the modification time still changes the change time)."""
     stat = os.stat(path)
-    return stat.st_size, stat.st_mtime_ns
+    return [stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino, stat.st_dev]
 
 
 def _spool_dir(max_bytes: int) -> str | None:
@@ -73,7 +76,8 @@ def start_prefetch(scene: str | Path, downscale: int = 1, min_cores: int | None 
     global _child
     try:
         spool = tempfile.TemporaryFile(dir=_spool_dir(max_bytes))
-        child = subprocess.Popen([sys.executable, "-m", "ngp_warp.data.prefetch", str(scene), str(downscale),
+        # -P: the package the command runs, not one in the current folder
+        child = subprocess.Popen([sys.executable, "-P", "-m", "ngp_warp.data.prefetch", str(scene), str(downscale),
                                   str(spool.fileno()), str(max_bytes)], pass_fds=(spool.fileno(),),
                                  stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     except OSError:
@@ -90,38 +94,52 @@ def _map(fd: int) -> mmap.mmap:
     return mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
 
 
-def _collect() -> dict:
-    """Wait for the child and map what it wrote: {path: (file key, [H, W, C] uint8 read-only
-    ndarray)}; empty where it failed."""
+def _decoded_pixels(index: list, pixels) -> dict:
     import numpy as np
 
-    global _child
-    child, spool = _child
-    _child = None
-    with spool:
+    decoded = {}
+    for path, key, shape, offset in index:
+        count = int(np.prod(shape))
+        decoded[path] = (key, np.frombuffer(pixels, np.uint8, count, offset).reshape(shape))
+    return decoded
+
+
+def collect_prefetched() -> None:
+    """Wait for the child, on the calling thread (a Ctrl-C meanwhile ends the child at once),
+    and map what it wrote for :func:`read_prefetched`: {path: (file key, [H, W, C] uint8
+    read-only ndarray)}, nothing where it failed. Nothing to do without a child."""
+    global _child, _decoded
+    with _lock:
+        if _child is None:
+            return
+        child, spool = _child
+        _child = None
+    try:
         index_text = child.communicate()[0]
+    except BaseException:
+        child.kill()
+        child.wait()
+        spool.close()
+        raise
+    with spool:
         try:
             index = json.loads(index_text) if child.returncode == 0 else []
-            pixels = _map(spool.fileno()) if index else None
-        except (ValueError, OSError):
-            return {}
-    decoded = {}
-    for path, size, mtime_ns, shape, offset in index:
-        count = int(np.prod(shape))
-        decoded[path] = ((size, mtime_ns), np.frombuffer(pixels, np.uint8, count, offset).reshape(shape))
-    return decoded
+            decoded = _decoded_pixels(index, _map(spool.fileno())) if index else {}
+        except (ValueError, TypeError, OSError):  # an index this module did not write
+            decoded = {}
+    with _lock:
+        _decoded = decoded
 
 
 def read_prefetched(path: Path):
     """:func:`~ngp_warp.data.images.read_image` of ``path`` ([H, W, 3 or 4] uint8; read-only
-    when it comes from the prefetch): the child's pixels when it decoded this file and the
-    file has kept its size and modification time since, else a read of the file."""
-    global _decoded
+    when it comes from the prefetch): the child's pixels when it decoded this file and the file
+    is unchanged since (:func:`_file_key`), else a read of the file. Waits for the child first
+    where :func:`collect_prefetched` has not."""
     from ngp_warp.data.images import read_image
 
+    collect_prefetched()
     with _lock:
-        if _child is not None:
-            _decoded = _collect()
         key, pixels = (_decoded or {}).pop(str(path), (None, None))
     try:
         unchanged = pixels is not None and _file_key(path) == key
@@ -150,7 +168,7 @@ def _write_all(fd: int, data: memoryview) -> None:
 def _decode_scene(scene: Path, downscale: int, spool_fd: int, max_bytes: int) -> list:
     """The child's work: decode the scene's images on threads, write their pixels to
     ``spool_fd`` in turn (until ``max_bytes``, or the file system is full), and return the index
-    [path, size, mtime_ns, shape, offset] of those written. Files it cannot list or decode are
+    [path, file key, shape, offset] of those written. Files it cannot list or decode are
     left out."""
     import numpy as np
 
@@ -181,7 +199,7 @@ def _decode_scene(scene: Path, downscale: int, spool_fd: int, max_bytes: int) ->
                 _write_all(spool_fd, memoryview(np.ascontiguousarray(pixels)).cast("B"))
             except OSError:  # the file system is full: what is written so far stands
                 break
-            index.append([str(path), *key, list(pixels.shape), offset])
+            index.append([str(path), key, list(pixels.shape), offset])
             offset += pixels.nbytes
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
