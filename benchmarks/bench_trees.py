@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PHASES = ("start-up", "training", "checkpoint", "evaluation", "video")
+PHASES = ("start_up", "training", "checkpoint", "evaluation", "video")  # metrics.json's wall_seconds
 
 
 def _git(*args: str) -> bytes:
