@@ -16,8 +16,8 @@ import warp as wp
 from ngp_warp.kernels.occupancy import box_center, box_half, cell_id, is_occupied
 from ngp_warp.kernels.raymarch_funcs import (_MAX_ITERS, _REMARCH, NO_CONTRACTION, MarchConfig, StepSchedule, block_exit,
                                              contracted_point, contracted_step_at, empty_mip, first_step_past,
-                                             grid_cell, march_start, mark_step, ray_span, ray_steps, reciprocal,
-                                             step_start, store_mask, write_sample)
+                                             grid_cell, march_start, mark_step, midpoint, ray_span, ray_steps,
+                                             reciprocal, step_start, store_mask, write_sample)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -107,7 +107,7 @@ def march_segment(
     while t < t1 and k < k_end and n < cap and iters < _MAX_ITERS:
         iters += 1
         t_end = wp.min(step_start(steps, k + 1), t1)
-        level, ijk, lower, scale = grid_cell(o + d * (0.5 * (t + t_end)), c, h, inv_h, cfg.levels, res)
+        level, ijk, lower, scale = grid_cell(midpoint(o, d, t, t_end), c, h, inv_h, cfg.levels, res)
         size = h * (2.0 * scale / float(res))
         if is_occupied(bitfield, cell_id(level, ijk, res)):
             # every step whose midpoint lies before the cell's exit is in the cell
@@ -152,7 +152,7 @@ def march_contracted(
         iters += 1
         dt = contracted_step_at(o + d * t, v, t, cfg)
         t_end = wp.min(t + dt, t1)
-        y = contracted_point(o + d * (0.5 * (t + t_end)), cfg)
+        y = contracted_point(midpoint(o, d, t, t_end), cfg)
         level, ijk, lower, scale = grid_cell(y, c, h, inv_h, cfg.levels, cfg.res)
         if is_occupied(bitfield, cell_id(level, ijk, cfg.res)):
             if fill != 0:
@@ -285,5 +285,5 @@ def sample_points(
     r = int(ray_indices[j])
     if r < rays_o.shape[0]:
         d = rays_d[r]
-        positions[j] = rays_o[r] + d * (0.5 * (t_starts[j] + t_ends[j]))
+        positions[j] = midpoint(rays_o[r], d, t_starts[j], t_ends[j])
         directions[j] = d

@@ -259,6 +259,12 @@ def empty_mip(mips: wp.array(dtype=wp.uint8), base: int, ijk: wp.vec3i, res: int
 
 
 @wp.func
+def midpoint(o: wp.vec3, d: wp.vec3, t: float, t_end: float) -> wp.vec3:
+    """o + d (t + t_end) / 2: the point a step's cell is looked up at, and its sample's position."""
+    return o + d * (0.5 * (t + t_end))
+
+
+@wp.func
 def write_sample(
     j: int, r: int, o: wp.vec3, d: wp.vec3, t: float, t_end: float,
     ray_indices: wp.array(dtype=wp.int64),
@@ -273,7 +279,7 @@ def write_sample(
     t_starts[j] = t
     t_ends[j] = t_end
     if positions.shape[0] > 0:
-        positions[j] = o + d * (0.5 * (t + t_end))
+        positions[j] = midpoint(o, d, t, t_end)
         directions[j] = d
 
 
